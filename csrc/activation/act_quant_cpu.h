@@ -1,0 +1,15 @@
+// Dynamic per-token, per-group activation quantization on the CPU (docs/numerics.md, section 2).
+#pragma once
+
+#include <cstdint>
+
+#include "common/format.h"
+
+namespace dyq::cpu {
+
+// x: [m, k] row-major of `dtype`. act_bits in {2, 4, 8}.
+// Writes packed codes uint8 [m, k*act_bits/8], scales fp32 [m, k/group_size], zeros uint8 [m, k/group_size].
+void quantize_activations(const void* x, ScalarType dtype, int64_t m, int64_t k, int group_size, int act_bits,
+                          uint8_t* packed, float* scales, uint8_t* zeros);
+
+}  // namespace dyq::cpu
