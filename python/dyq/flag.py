@@ -1,0 +1,92 @@
+"""The precision flag: one int32 that selects the activation bit-width of a whole model.
+
+A quantized model binds every DyQ linear layer to the same :class:`PrecisionFlag`, so a single host
+write switches all of them. The GEMM op ``torch.ops.dyq.gemm_with_flag(..., flag.tensor, ...)`` reads
+the int32 at run time, never at trace or capture time: a CUDA graph captured once serves every
+precision.
+
+Memory
+------
+With CUDA available the int32 lives in pinned (page-locked) host memory allocated by torch's
+``cudaHostAlloc``-backed allocator. Under unified virtual addressing such memory is mapped into the
+device address space with the same pointer, so a kernel reads the flag directly (zero-copy) and no
+host-to-device transfer is ever enqueued. Without CUDA the flag is ordinary host memory and the CPU
+kernels read it the same way.
+
+Memory ordering
+---------------
+The flag is read by kernels when they *run*, not when they are enqueued. A write is therefore safe
+only when no kernel that may read the old value is still pending:
+
+* the host writes the flag, then launches (or replays the graph of) the decode; the kernel launch
+  orders the earlier host store before the kernel's reads;
+* the host must not write the flag while kernels that should see the previous value are queued or
+  running (for example a prefill that was enqueued asynchronously). :class:`dyq.runtime.DyQRuntime`
+  synchronizes before any write that changes the value, and publishes b*_t before it signals the
+  decode.
+* kernels read the flag once per launch with an uncached (volatile, ``__ldcv``) load so that no copy
+  cached by an earlier kernel is used.
+
+Writes go through a numpy view of the tensor's storage: a plain store of about 0.1 microseconds,
+with no torch dispatch and no allocation.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+VALID_BITS = (2, 4, 8, 16)
+"""Activation bit-widths a flag may hold: 2, 4 and 8 quantize activations, 16 is the BF16 fallback."""
+
+
+def check_bits(bits, name: str = "bits") -> int:
+    """Return ``bits`` as an int if it is one of :data:`VALID_BITS`, else raise naming ``name``."""
+    if isinstance(bits, (bool, np.bool_)) or not isinstance(bits, (int, np.integer)):
+        raise TypeError(f"{name} must be an int in {VALID_BITS}, got {type(bits).__name__} {bits!r}")
+    bits = int(bits)
+    if bits not in VALID_BITS:
+        raise ValueError(f"{name} must be one of {VALID_BITS}, got {bits}")
+    return bits
+
+
+class PrecisionFlag:
+    """One int32 holding the activation bit-width (2, 4, 8 or 16) that a whole model runs at.
+
+    Args:
+        bits: initial bit-width, one of :data:`VALID_BITS` (default 16, full precision).
+        pin_memory: allocate the int32 in pinned host memory; by default pinned exactly when
+            ``torch.cuda.is_available()``.
+    """
+
+    __slots__ = ("_tensor", "_view")
+
+    def __init__(self, bits: int = 16, *, pin_memory: bool | None = None):
+        bits = check_bits(bits)
+        if pin_memory is None:
+            pin_memory = torch.cuda.is_available()
+        self._tensor = torch.empty(1, dtype=torch.int32, pin_memory=bool(pin_memory))
+        self._view = self._tensor.numpy()  # shares the tensor's storage
+        self._view[0] = bits
+
+    @property
+    def bits(self) -> int:
+        """The bit-width the next kernels will read."""
+        return int(self._view[0])
+
+    @bits.setter
+    def bits(self, bits: int) -> None:
+        self._view[0] = check_bits(bits)
+
+    @property
+    def tensor(self) -> torch.Tensor:
+        """The one-element int32 CPU tensor the GEMM ops read; the same object for the flag's life."""
+        return self._tensor
+
+    @property
+    def is_pinned(self) -> bool:
+        """Whether the int32 lives in pinned host memory (readable by the GPU without a copy)."""
+        return self._tensor.is_pinned()
+
+    def __repr__(self) -> str:
+        return f"PrecisionFlag(bits={self.bits}, pinned={self.is_pinned})"
