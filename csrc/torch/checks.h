@@ -1,0 +1,95 @@
+// Argument checks shared by the CPU and CUDA registrations: every misuse is a clear error that names
+// the argument and what was expected (docs/numerics.md, section 4).
+#pragma once
+
+#include <ATen/core/Tensor.h>
+#include <c10/util/Exception.h>
+
+#include <optional>
+
+#include "common/format.h"
+
+namespace dyq {
+
+inline bool is_activation_dtype(at::ScalarType t) {
+  return t == at::kFloat || t == at::kBFloat16 || t == at::kHalf;
+}
+
+inline ScalarType to_dyq_dtype(at::ScalarType t) {
+  switch (t) {
+    case at::kFloat: return ScalarType::kFloat32;
+    case at::kBFloat16: return ScalarType::kBFloat16;
+    case at::kHalf: return ScalarType::kFloat16;
+    default: TORCH_CHECK(false, "dyq: unsupported dtype ", t, "; expected float32, bfloat16 or float16");
+  }
+}
+
+inline void check_group_size(int64_t group_size) {
+  TORCH_CHECK(is_valid_group_size(group_size), "dyq: group_size must be 32, 64 or 128, got ", group_size);
+}
+
+inline void check_act_bits(int64_t act_bits, bool allow_fallback = true) {
+  TORCH_CHECK(act_bits == 2 || act_bits == 4 || act_bits == 8 || (allow_fallback && act_bits == 16),
+              "dyq: act_bits must be ", allow_fallback ? "2, 4, 8 or 16" : "2, 4 or 8", ", got ", act_bits);
+}
+
+inline void check_k_divisible(int64_t k, int64_t group_size, const char* what) {
+  TORCH_CHECK(k % group_size == 0, "dyq: ", what, " has K = ", k, " columns, which is not a multiple of group_size = ",
+              group_size);
+}
+
+inline void check_activation(const at::Tensor& x, const char* name) {
+  TORCH_CHECK(is_activation_dtype(x.scalar_type()), "dyq: ", name, " must be float32, bfloat16 or float16, got ",
+              x.scalar_type());
+  TORCH_CHECK(x.dim() >= 1, "dyq: ", name, " must have at least one dimension (..., K), got a scalar");
+}
+
+// qweight uint8 [N, K/2] and scales fp32 [N, K/G], dense, on the device of `x`.
+inline void check_packed_weight(const at::Tensor& qweight, const at::Tensor& scales, int64_t group_size,
+                                const at::Device& device) {
+  TORCH_CHECK(qweight.scalar_type() == at::kByte, "dyq: qweight must be uint8 (two INT4 codes per byte), got ",
+              qweight.scalar_type());
+  TORCH_CHECK(qweight.dim() == 2, "dyq: qweight must have shape [N, K/2], got ", qweight.sizes());
+  TORCH_CHECK(qweight.is_contiguous(), "dyq: qweight must be contiguous (packed data is dense)");
+  TORCH_CHECK(scales.scalar_type() == at::kFloat, "dyq: scales must be float32, got ", scales.scalar_type());
+  TORCH_CHECK(scales.is_contiguous(), "dyq: scales must be contiguous");
+  const int64_t k = qweight.size(1) * 2;
+  check_k_divisible(k, group_size, "qweight");
+  TORCH_CHECK(scales.dim() == 2 && scales.size(0) == qweight.size(0) && scales.size(1) == k / group_size,
+              "dyq: scales must have shape [N, K/group_size] = [", qweight.size(0), ", ", k / group_size, "], got ",
+              scales.sizes());
+  TORCH_CHECK(qweight.device() == device, "dyq: qweight is on ", qweight.device(), " but x is on ", device);
+  TORCH_CHECK(scales.device() == device, "dyq: scales is on ", scales.device(), " but x is on ", device);
+}
+
+inline void check_gemm_args(const at::Tensor& x, const at::Tensor& qweight, const at::Tensor& scales,
+                            int64_t group_size, const std::optional<at::Tensor>& bias) {
+  check_group_size(group_size);
+  check_activation(x, "x");
+  check_packed_weight(qweight, scales, group_size, x.device());
+  const int64_t k = qweight.size(1) * 2;
+  TORCH_CHECK(x.size(-1) == k, "dyq: x has ", x.size(-1), " features (last dimension) but the weight expects K = ",
+              k);
+  if (bias.has_value()) {
+    TORCH_CHECK(bias->scalar_type() == x.scalar_type(), "dyq: bias must have the dtype of x (", x.scalar_type(),
+                "), got ", bias->scalar_type());
+    TORCH_CHECK(bias->dim() == 1 && bias->size(0) == qweight.size(0), "dyq: bias must have shape [N] = [",
+                qweight.size(0), "], got ", bias->sizes());
+    TORCH_CHECK(bias->device() == x.device(), "dyq: bias is on ", bias->device(), " but x is on ", x.device());
+  }
+}
+
+inline void check_flag_tensor(const at::Tensor& flag) {
+  TORCH_CHECK(flag.scalar_type() == at::kInt, "dyq: act_bits_flag must be an int32 tensor, got ",
+              flag.scalar_type());
+  TORCH_CHECK(flag.numel() == 1, "dyq: act_bits_flag must hold exactly one element, got ", flag.numel());
+}
+
+// Output shape: x's leading dimensions, then N.
+inline std::vector<int64_t> gemm_output_shape(const at::Tensor& x, int64_t n) {
+  std::vector<int64_t> shape(x.sizes().begin(), x.sizes().end());
+  shape.back() = n;
+  return shape;
+}
+
+}  // namespace dyq

@@ -1,0 +1,117 @@
+// CPU registrations of the dyq operators: validation (checks.h), then the torch-free kernels.
+#include <ATen/Parallel.h>
+#include <ATen/core/Tensor.h>
+#include <ATen/ops/empty.h>
+#include <torch/library.h>
+
+#include "activation/act_quant_cpu.h"
+#include "gemm/gemm_cpu.h"
+#include "parallel/parallel.h"
+#include "torch/checks.h"
+#include "weight/weight_pack_cpu.h"
+
+namespace dyq {
+namespace {
+
+void torch_parallel_for(int64_t begin, int64_t end, int64_t grain_size, const RangeBody& body) {
+  at::parallel_for(begin, end, grain_size, body);
+}
+
+// dyq's kernels run on torch's intra-op thread pool (and so honour torch.set_num_threads).
+[[maybe_unused]] const bool kParallelBackendInstalled = [] {
+  set_parallel_backend(&torch_parallel_for);
+  return true;
+}();
+
+std::tuple<at::Tensor, at::Tensor> quantize_weight_cpu(const at::Tensor& weight, int64_t group_size) {
+  check_group_size(group_size);
+  TORCH_CHECK(weight.is_floating_point(), "dyq: weight must be a floating-point tensor, got ", weight.scalar_type());
+  TORCH_CHECK(weight.dim() == 2, "dyq: weight must have shape [N, K], got ", weight.sizes());
+  const int64_t n = weight.size(0), k = weight.size(1);
+  check_k_divisible(k, group_size, "weight");
+  const at::Tensor w = weight.to(at::kFloat).contiguous();
+  at::Tensor qweight = at::empty({n, k / 2}, weight.options().dtype(at::kByte));
+  at::Tensor scales = at::empty({n, k / group_size}, weight.options().dtype(at::kFloat));
+  const bool finite = cpu::quantize_weight(w.const_data_ptr<float>(), n, k, static_cast<int>(group_size),
+                                           qweight.mutable_data_ptr<uint8_t>(), scales.mutable_data_ptr<float>());
+  TORCH_CHECK(finite, "dyq: weight contains NaN or Inf; static INT4 weights must be finite");
+  return {qweight, scales};
+}
+
+at::Tensor dequantize_weight_cpu(const at::Tensor& qweight, const at::Tensor& scales, int64_t group_size) {
+  check_group_size(group_size);
+  check_packed_weight(qweight, scales, group_size, qweight.device());
+  const int64_t n = qweight.size(0), k = qweight.size(1) * 2;
+  at::Tensor out = at::empty({n, k}, scales.options());
+  cpu::dequantize_weight(qweight.const_data_ptr<uint8_t>(), scales.const_data_ptr<float>(), n, k,
+                         static_cast<int>(group_size), out.mutable_data_ptr<float>());
+  return out;
+}
+
+std::tuple<at::Tensor, at::Tensor, at::Tensor> quantize_activations_cpu(const at::Tensor& x, int64_t group_size,
+                                                                        int64_t act_bits) {
+  check_group_size(group_size);
+  check_act_bits(act_bits, /*allow_fallback=*/false);
+  check_activation(x, "x");
+  const int64_t k = x.size(-1);
+  check_k_divisible(k, group_size, "x");
+  const at::Tensor xc = x.contiguous();
+  const int64_t m = k == 0 ? 0 : xc.numel() / k;
+  std::vector<int64_t> packed_shape(x.sizes().begin(), x.sizes().end());
+  std::vector<int64_t> group_shape = packed_shape;
+  packed_shape.back() = packed_activation_bytes(k, static_cast<int>(act_bits));
+  group_shape.back() = k / group_size;
+  at::Tensor packed = at::empty(packed_shape, x.options().dtype(at::kByte));
+  at::Tensor scales = at::empty(group_shape, x.options().dtype(at::kFloat));
+  at::Tensor zeros = at::empty(group_shape, x.options().dtype(at::kByte));
+  if (m > 0) {
+    cpu::quantize_activations(xc.const_data_ptr(), to_dyq_dtype(x.scalar_type()), m, k, static_cast<int>(group_size),
+                              static_cast<int>(act_bits), packed.mutable_data_ptr<uint8_t>(),
+                              scales.mutable_data_ptr<float>(), zeros.mutable_data_ptr<uint8_t>());
+  }
+  return {packed, scales, zeros};
+}
+
+at::Tensor gemm_cpu_impl(const at::Tensor& x, const at::Tensor& qweight, const at::Tensor& scales, int64_t group_size,
+                         int64_t act_bits, const std::optional<at::Tensor>& bias) {
+  const int64_t n = qweight.size(0), k = qweight.size(1) * 2;
+  at::Tensor out = at::empty(gemm_output_shape(x, n), x.options());
+  const at::Tensor xc = x.contiguous();
+  const int64_t m = k == 0 ? 0 : xc.numel() / k;
+  if (m == 0 || n == 0) return out;
+  const at::Tensor bias_c = bias.has_value() ? bias->contiguous() : at::Tensor();
+  cpu::gemm(xc.const_data_ptr(), to_dyq_dtype(x.scalar_type()), qweight.const_data_ptr<uint8_t>(),
+            scales.const_data_ptr<float>(), bias_c.defined() ? bias_c.const_data_ptr() : nullptr, m, n, k,
+            static_cast<int>(group_size), static_cast<int>(act_bits), out.mutable_data_ptr());
+  return out;
+}
+
+at::Tensor gemm_cpu(const at::Tensor& x, const at::Tensor& qweight, const at::Tensor& scales, int64_t group_size,
+                    int64_t act_bits, const std::optional<at::Tensor>& bias) {
+  check_gemm_args(x, qweight, scales, group_size, bias);
+  check_act_bits(act_bits);
+  return gemm_cpu_impl(x, qweight, scales, group_size, act_bits, bias);
+}
+
+at::Tensor gemm_with_flag_cpu(const at::Tensor& x, const at::Tensor& qweight, const at::Tensor& scales,
+                              int64_t group_size, const at::Tensor& act_bits_flag,
+                              const std::optional<at::Tensor>& bias) {
+  check_gemm_args(x, qweight, scales, group_size, bias);
+  check_flag_tensor(act_bits_flag);
+  TORCH_CHECK(act_bits_flag.device().is_cpu(), "dyq: act_bits_flag must be a CPU (host) tensor for CPU inputs, got ",
+              act_bits_flag.device());
+  const int64_t act_bits = act_bits_flag.item<int32_t>();
+  TORCH_CHECK(is_valid_act_bits(act_bits), "dyq: act_bits_flag holds ", act_bits, "; expected 2, 4, 8 or 16");
+  return gemm_cpu_impl(x, qweight, scales, group_size, act_bits, bias);
+}
+
+}  // namespace
+}  // namespace dyq
+
+TORCH_LIBRARY_IMPL(dyq, CPU, m) {
+  m.impl("quantize_weight", &dyq::quantize_weight_cpu);
+  m.impl("dequantize_weight", &dyq::dequantize_weight_cpu);
+  m.impl("quantize_activations", &dyq::quantize_activations_cpu);
+  m.impl("gemm", &dyq::gemm_cpu);
+  m.impl("gemm_with_flag", &dyq::gemm_with_flag_cpu);
+}

@@ -1,0 +1,147 @@
+"""Whole-model conversion: ``quantize_model``, ``set_precision`` and ``bind_flag``."""
+from __future__ import annotations
+
+import fnmatch
+import re
+from dataclasses import dataclass, field
+from typing import Iterable, Pattern, Union
+
+import torch
+from torch import nn
+
+from .flag import PrecisionFlag
+from .linear import DyQLinear, _check_bits
+
+SkipPattern = Union[str, Pattern[str]]
+DEFAULT_SKIP = ("lm_head",)
+
+
+def _tensor_bytes(tensors: Iterable[torch.Tensor]) -> int:
+    return sum(t.numel() * t.element_size() for t in tensors)
+
+
+def _module_bytes(model: nn.Module) -> int:
+    return _tensor_bytes(model.parameters()) + _tensor_bytes(model.buffers())
+
+
+def _matches(name: str, patterns: Iterable[SkipPattern]) -> bool:
+    """A glob (``"*.lm_head"``, matched against the full name and its last component) or a compiled regex."""
+    last = name.rsplit(".", 1)[-1]
+    for p in patterns:
+        if isinstance(p, re.Pattern):
+            if p.search(name):
+                return True
+        elif fnmatch.fnmatchcase(name, p) or fnmatch.fnmatchcase(last, p):
+            return True
+    return False
+
+
+@dataclass
+class QuantizationReport:
+    """What :func:`quantize_model` converted, what it left alone and why, and the memory it saved."""
+
+    group_size: int
+    converted: list[str] = field(default_factory=list)
+    skipped: dict[str, str] = field(default_factory=dict)
+    linear_bytes_before: int = 0
+    linear_bytes_after: int = 0
+    model_bytes_before: int = 0
+    model_bytes_after: int = 0
+
+    @property
+    def linear_ratio(self) -> float:
+        return self.linear_bytes_after / self.linear_bytes_before if self.linear_bytes_before else 1.0
+
+    @property
+    def model_ratio(self) -> float:
+        return self.model_bytes_after / self.model_bytes_before if self.model_bytes_before else 1.0
+
+    def __str__(self) -> str:
+        mb = 1 / 2**20
+        lines = [
+            f"dyq: converted {len(self.converted)} linear layers to INT4 (group_size={self.group_size}), "
+            f"skipped {len(self.skipped)}",
+            f"  converted layers: {self.linear_bytes_before * mb:10.2f} MiB -> {self.linear_bytes_after * mb:10.2f} MiB "
+            f"({100 * self.linear_ratio:.1f} %)",
+            f"  whole model:      {self.model_bytes_before * mb:10.2f} MiB -> {self.model_bytes_after * mb:10.2f} MiB "
+            f"({100 * self.model_ratio:.1f} %)",
+        ]
+        lines += [f"  skipped {name}: {why}" for name, why in self.skipped.items()]
+        return "\n".join(lines)
+
+
+def quantize_model(model: nn.Module, group_size: int = 128, skip: Iterable[SkipPattern] = DEFAULT_SKIP,
+                   act_bits: int = 16, flag: PrecisionFlag | None = None) -> QuantizationReport:
+    """Replace every ``nn.Linear`` of ``model`` in place by a :class:`DyQLinear` with INT4 weights.
+
+    Args:
+        model: any module, e.g. a Hugging Face ``LlamaForCausalLM`` or a BERT encoder.
+        group_size: INT4 group size along the input features (32, 64 or 128).
+        skip: layer names to leave in full precision: globs matched against the full name and its last
+            component (``"lm_head"``, ``"*.attn.*"``) or compiled regular expressions. The LM head is skipped
+            by default (it scores the action tokens; pass ``skip=()`` to convert it too).
+        act_bits: the initial activation bit-width of the converted layers (16 = unquantized).
+        flag: a :class:`PrecisionFlag` that every converted layer reads at run time, so that one write
+            switches the whole model (the dispatcher's b*_t).
+
+    Layers whose input features are not a multiple of ``group_size`` stay as they are and are listed in the
+    report's ``skipped`` with the reason.
+    """
+    if not isinstance(model, nn.Module):
+        raise TypeError(f"model must be a torch.nn.Module, got {type(model).__name__}")
+    if group_size not in (32, 64, 128):
+        raise ValueError(f"group_size must be 32, 64 or 128, got {group_size!r}")
+    _check_bits(act_bits)
+    skip = tuple(skip) if not isinstance(skip, (str, re.Pattern)) else (skip,)
+    report = QuantizationReport(group_size=group_size, model_bytes_before=_module_bytes(model))
+
+    targets = []
+    for name, module in model.named_modules():
+        if not isinstance(module, nn.Linear) or isinstance(module, DyQLinear):
+            continue
+        if _matches(name, skip):
+            report.skipped[name] = "matches a skip pattern"
+        elif module.in_features % group_size != 0:
+            report.skipped[name] = f"in_features = {module.in_features} is not a multiple of {group_size}"
+        else:
+            targets.append((name, module))
+
+    for name, linear in targets:
+        parent_name, _, child = name.rpartition(".")
+        parent = model.get_submodule(parent_name) if parent_name else model
+        quantized = DyQLinear.from_linear(linear, group_size=group_size, act_bits=act_bits, flag=flag)
+        report.linear_bytes_before += _tensor_bytes(linear.parameters())
+        report.linear_bytes_after += quantized.weight_bytes()
+        setattr(parent, child, quantized)
+        report.converted.append(name)
+
+    report.model_bytes_after = _module_bytes(model)
+    return report
+
+
+def dyq_layers(model: nn.Module) -> list[DyQLinear]:
+    return [m for m in model.modules() if isinstance(m, DyQLinear)]
+
+
+def set_precision(module_or_model: nn.Module, bits: int) -> int:
+    """Set the activation bit-width of every DyQLinear in ``module_or_model``; returns how many layers.
+
+    Layers bound to a PrecisionFlag get the value through their flag (one write per distinct flag).
+    """
+    bits = _check_bits(bits, "bits")
+    layers = dyq_layers(module_or_model)
+    if not layers:
+        raise ValueError(f"{type(module_or_model).__name__} contains no DyQLinear layer; run dyq.quantize_model first")
+    for layer in layers:
+        layer.set_precision(bits)
+    return len(layers)
+
+
+def bind_flag(module_or_model: nn.Module, flag: PrecisionFlag | None) -> int:
+    """Make every DyQLinear read its bit-width from ``flag`` (``None`` unbinds); returns how many layers."""
+    layers = dyq_layers(module_or_model)
+    if not layers:
+        raise ValueError(f"{type(module_or_model).__name__} contains no DyQLinear layer; run dyq.quantize_model first")
+    for layer in layers:
+        layer.bind_flag(flag)
+    return len(layers)

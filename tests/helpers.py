@@ -1,0 +1,41 @@
+"""Input builders and tolerances shared by the tests."""
+import torch
+
+from dyq import reference
+
+DTYPES = (torch.float32, torch.bfloat16, torch.float16)
+# Relative rounding of one output element in each dtype (half an ulp), plus fp32 accumulation slack.
+OUTPUT_RTOL = {torch.float32: 2e-6, torch.bfloat16: 2**-8, torch.float16: 2**-11}
+# fp16 flushes tiny results to its subnormal grid (2^-24).
+OUTPUT_ATOL = {torch.float32: 1e-30, torch.bfloat16: 1e-30, torch.float16: 2**-24}
+
+
+def random_weight(n, k, gen, dtype=torch.float32):
+    """Weights shaped like a trained layer's: roughly Gaussian with a few larger entries per row."""
+    w = torch.randn(n, k, generator=gen) * 0.02
+    spikes = torch.rand(n, k, generator=gen) < 0.01
+    w = torch.where(spikes, w * 8, w)
+    return w.to(dtype)
+
+
+def random_activations(shape, gen, dtype=torch.float32):
+    """Activations with outlier channels, as transformer hidden states have."""
+    x = torch.randn(*shape, generator=gen)
+    k = shape[-1]
+    outliers = torch.randperm(k, generator=gen)[: max(1, k // 64)]
+    x[..., outliers] *= 10
+    return x.to(dtype)
+
+
+def assert_gemm_close(out, x, qweight, scales, group_size, act_bits, bias=None):
+    """out must equal the float64 reference to within the rounding of fp32 sums and of the output dtype."""
+    expected = reference.gemm(x, qweight, scales, group_size, act_bits, bias)
+    bound = reference.gemm_error_bound(x, qweight, scales, group_size, act_bits, bias)
+    rtol = OUTPUT_RTOL[out.dtype]
+    # fp32 sums: a few ulps of sum|terms|; the final rounding to out.dtype: rtol of |expected|.
+    tolerance = 4e-7 * bound * 8 + rtol * expected.abs() + OUTPUT_ATOL[out.dtype]
+    diff = (out.double() - expected).abs()
+    finite = torch.isfinite(expected)
+    assert torch.equal(torch.isfinite(out), finite), "non-finite entries differ from the reference"
+    worst = (diff[finite] / tolerance[finite]).max().item() if finite.any() else 0.0
+    assert worst <= 1.0, f"max error / tolerance = {worst:.3g}"

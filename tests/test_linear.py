@@ -1,0 +1,119 @@
+"""DyQLinear as a drop-in nn.Linear."""
+import io
+
+import pytest
+import torch
+from helpers import DTYPES, assert_gemm_close, random_activations
+
+import dyq
+from dyq import reference
+
+
+def make_linear(k, n, bias, dtype, gen):
+    linear = torch.nn.Linear(k, n, bias=bias)
+    with torch.no_grad():
+        linear.weight.copy_(torch.randn(n, k, generator=gen) * 0.05)
+        if bias:
+            linear.bias.copy_(torch.randn(n, generator=gen))
+    return linear.to(dtype)
+
+
+@pytest.mark.parametrize("dtype", DTYPES)
+@pytest.mark.parametrize("bias", (True, False))
+@pytest.mark.parametrize("act_bits", (2, 4, 8, 16))
+def test_from_linear_forward_matches_reference(dtype, bias, act_bits, rng):
+    linear = make_linear(256, 45, bias, dtype, rng)
+    layer = dyq.DyQLinear.from_linear(linear, group_size=64, act_bits=act_bits)
+    x = random_activations((2, 9, 256), rng, dtype)
+    out = layer(x)
+    assert out.dtype == dtype and out.shape == (2, 9, 45)
+    assert_gemm_close(out, x, layer.qweight, layer.scales, 64, act_bits, layer.bias)
+
+
+def test_fallback_precision_is_close_to_the_float_layer(rng):
+    linear = make_linear(512, 64, True, torch.float32, rng)
+    layer = dyq.DyQLinear.from_linear(linear, act_bits=16)
+    x = random_activations((8, 512), rng)
+    expected = x @ layer.dequantized_weight().t() + linear.bias
+    assert torch.allclose(layer(x), expected, rtol=1e-5, atol=1e-5)
+    # INT4 weights only: within a few percent of the original layer.
+    with torch.no_grad():
+        rel = (layer(x) - linear(x)).norm() / linear(x).norm()
+    assert rel < 0.1
+
+
+def test_quantized_weight_is_the_reference_quantization(rng):
+    linear = make_linear(128, 20, False, torch.bfloat16, rng)
+    layer = dyq.DyQLinear.from_linear(linear, group_size=32)
+    codes, scales = reference.quantize_weight(linear.weight.float(), 32)
+    assert torch.equal(layer.qweight, reference.pack_int4(codes)) and torch.equal(layer.scales, scales)
+
+
+def test_state_dict_round_trip(rng):
+    layer = dyq.DyQLinear.from_linear(make_linear(128, 24, True, torch.bfloat16, rng), group_size=64, act_bits=4)
+    buffer = io.BytesIO()
+    torch.save(layer.state_dict(), buffer)
+    buffer.seek(0)
+    fresh = dyq.DyQLinear(128, 24, bias=True, group_size=64, act_bits=4, dtype=torch.bfloat16)
+    fresh.load_state_dict(torch.load(buffer))
+    assert set(layer.state_dict()) == {"qweight", "scales", "bias"}
+    x = random_activations((5, 128), rng, torch.bfloat16)
+    assert torch.equal(fresh(x), layer(x))
+
+
+def test_shared_flag_switches_every_layer(rng):
+    flag = dyq.PrecisionFlag(16)
+    layers = [dyq.DyQLinear.from_linear(make_linear(128, 128, True, torch.float32, rng), flag=flag)
+              for _ in range(3)]
+    x = random_activations((4, 128), rng)
+    for bits in (2, 4, 8, 16):
+        flag.bits = bits
+        for layer in layers:
+            assert layer.precision == bits
+            expected = dyq.ops.gemm(x, layer.qweight, layer.scales, 128, bits, layer.bias)
+            assert torch.equal(layer(x), expected)
+
+
+def test_set_precision_writes_the_flag_when_bound(rng):
+    flag = dyq.PrecisionFlag(16)
+    layer = dyq.DyQLinear.from_linear(make_linear(128, 8, False, torch.float32, rng), flag=flag)
+    layer.set_precision(2)
+    assert flag.bits == 2 and layer.act_bits == 16
+    layer.bind_flag(None)
+    layer.set_precision(8)
+    assert layer.act_bits == 8 and flag.bits == 2
+
+
+def test_half_and_bfloat16_conversion_keeps_float32_scales(rng):
+    layer = dyq.DyQLinear.from_linear(make_linear(128, 8, True, torch.float32, rng))
+    scales = layer.scales.clone()
+    layer.half()
+    assert layer.scales.dtype == torch.float32 and torch.equal(layer.scales, scales)
+    assert layer.bias.dtype == torch.float16 and layer.qweight.dtype == torch.uint8
+    layer.to(torch.bfloat16)
+    assert torch.equal(layer.scales, scales)
+
+
+def test_repr_names_the_format(rng):
+    layer = dyq.DyQLinear.from_linear(make_linear(128, 8, True, torch.float32, rng), group_size=32, act_bits=4)
+    text = repr(layer)
+    assert "in_features=128" in text and "out_features=8" in text and "group_size=32" in text
+    assert "act_bits=4" in text and "int4" in text
+
+
+def test_misuse_is_reported(rng):
+    with pytest.raises(ValueError, match="in_features = 100 is not a multiple of group_size = 64"):
+        dyq.DyQLinear(100, 8, group_size=64)
+    with pytest.raises(ValueError, match="group_size must be one of"):
+        dyq.DyQLinear(128, 8, group_size=100)
+    with pytest.raises(ValueError, match="act_bits must be one of"):
+        dyq.DyQLinear(128, 8, act_bits=3)
+    with pytest.raises(TypeError, match="must be a torch.nn.Linear"):
+        dyq.DyQLinear.from_linear(torch.nn.Conv1d(4, 4, 1))
+    layer = dyq.DyQLinear(128, 8)
+    with pytest.raises(TypeError, match="DyQLinear input must be one of"):
+        layer(torch.zeros(2, 128, dtype=torch.float64))
+    with pytest.raises(ValueError, match="bits must be one of"):
+        layer.set_precision(5)
+    with pytest.raises(TypeError, match="flag must be a dyq.PrecisionFlag"):
+        layer.bind_flag(4)

@@ -1,0 +1,194 @@
+"""torch.ops.dyq on CPU tensors against the float64 reference of docs/numerics.md."""
+import pytest
+import torch
+from helpers import DTYPES, assert_gemm_close, random_activations, random_weight
+
+import dyq
+from dyq import reference
+
+ACT_BITS = (2, 4, 8, 16)
+GROUP_SIZES = (32, 64, 128)
+
+
+@pytest.mark.parametrize("group_size", GROUP_SIZES)
+def test_quantize_weight_matches_reference_codes_and_scales(group_size, rng):
+    n, k = 37, group_size * 3
+    w = random_weight(n, k, rng)
+    qweight, scales = dyq.ops.quantize_weight(w, group_size)
+    codes, ref_scales = reference.quantize_weight(w, group_size)
+    assert qweight.dtype == torch.uint8 and qweight.shape == (n, k // 2)
+    assert torch.equal(qweight, reference.pack_int4(codes))
+    assert torch.equal(scales, ref_scales)
+
+
+@pytest.mark.parametrize("dtype", DTYPES)
+def test_quantize_weight_accepts_low_precision_weights(dtype, rng):
+    w = random_weight(8, 128, rng, dtype)
+    qweight, scales = dyq.ops.quantize_weight(w, 64)
+    codes, ref_scales = reference.quantize_weight(w.float(), 64)
+    assert torch.equal(qweight, reference.pack_int4(codes)) and torch.equal(scales, ref_scales)
+
+
+def test_dequantize_weight_is_scale_times_code(rng):
+    w = random_weight(19, 256, rng)
+    qweight, scales = dyq.ops.quantize_weight(w, 128)
+    out = dyq.ops.dequantize_weight(qweight, scales, 128)
+    assert torch.equal(out, reference.dequantize_weight(qweight, scales, 128))
+    # INT4 error: at most half a step of each group's scale.
+    step = scales.repeat_interleave(128, dim=1)
+    assert ((out - w).abs() <= step / 2 + 1e-7).all()
+
+
+def test_all_zero_weight_group_dequantizes_to_zero(rng):
+    w = random_weight(4, 128, rng)
+    w[1, 64:] = 0
+    qweight, scales = dyq.ops.quantize_weight(w, 64)
+    assert scales[1, 1] == 1.0
+    assert torch.equal(dyq.ops.dequantize_weight(qweight, scales, 64)[1, 64:], torch.zeros(64))
+
+
+@pytest.mark.parametrize("act_bits", (2, 4, 8))
+@pytest.mark.parametrize("dtype", DTYPES)
+@pytest.mark.parametrize("group_size", GROUP_SIZES)
+def test_quantize_activations_is_bit_identical_to_reference(act_bits, dtype, group_size, rng):
+    x = random_activations((3, 5, group_size * 2), rng, dtype)
+    packed, scales, zeros = dyq.ops.quantize_activations(x, group_size, act_bits)
+    codes, ref_scales, ref_zeros = reference.quantize_activations(x, group_size, act_bits)
+    assert packed.shape == (3, 5, group_size * 2 * act_bits // 8)
+    assert torch.equal(packed, reference.pack_activations(codes, act_bits))
+    assert torch.equal(scales, ref_scales)
+    assert torch.equal(zeros, ref_zeros)
+
+
+@pytest.mark.parametrize("act_bits", ACT_BITS)
+@pytest.mark.parametrize("dtype", DTYPES)
+@pytest.mark.parametrize("group_size", GROUP_SIZES)
+def test_gemm_matches_reference(act_bits, dtype, group_size, rng):
+    m = int(torch.randint(1, 40, (), generator=rng)) | 1          # odd M
+    n = int(torch.randint(1, 70, (), generator=rng)) * 8 + 3      # N not a multiple of 8
+    k = group_size * int(torch.randint(2, 5, (), generator=rng))  # several groups
+    w = random_weight(n, k, rng)
+    qweight, scales = dyq.ops.quantize_weight(w, group_size)
+    x = random_activations((m, k), rng, dtype)
+    bias = torch.randn(n, generator=rng).to(dtype)
+    for b in (None, bias):
+        out = dyq.ops.gemm(x, qweight, scales, group_size, act_bits, b)
+        assert out.dtype == dtype and out.shape == (m, n)
+        assert_gemm_close(out, x, qweight, scales, group_size, act_bits, b)
+
+
+@pytest.mark.parametrize("act_bits", ACT_BITS)
+def test_gemm_keeps_leading_batch_dimensions(act_bits, rng):
+    w = random_weight(24, 128, rng)
+    qweight, scales = dyq.ops.quantize_weight(w, 64)
+    x = random_activations((2, 3, 5, 128), rng)
+    out = dyq.ops.gemm(x, qweight, scales, 64, act_bits)
+    assert out.shape == (2, 3, 5, 24)
+    flat = dyq.ops.gemm(x.reshape(30, 128), qweight, scales, 64, act_bits)
+    assert torch.equal(out.reshape(30, 24), flat)
+
+
+@pytest.mark.parametrize("act_bits", ACT_BITS)
+def test_gemm_with_flag_equals_gemm_at_the_flag_value(act_bits, rng):
+    w = random_weight(40, 256, rng)
+    qweight, scales = dyq.ops.quantize_weight(w, 128)
+    x = random_activations((7, 256), rng)
+    flag = dyq.PrecisionFlag(act_bits)
+    assert torch.equal(dyq.ops.gemm_with_flag(x, qweight, scales, 128, flag.tensor),
+                       dyq.ops.gemm(x, qweight, scales, 128, act_bits))
+
+
+def test_gemm_handles_empty_batch(rng):
+    qweight, scales = dyq.ops.quantize_weight(random_weight(16, 64, rng), 32)
+    out = dyq.ops.gemm(torch.empty(0, 64), qweight, scales, 32, 4)
+    assert out.shape == (0, 16)
+    assert dyq.ops.gemm(torch.empty(2, 0, 64), qweight, scales, 32, 16).shape == (2, 0, 16)
+
+
+def test_gemm_accepts_non_contiguous_activations(rng):
+    qweight, scales = dyq.ops.quantize_weight(random_weight(16, 64, rng), 32)
+    x = random_activations((64, 10), rng).t()  # [10, 64], strided
+    assert not x.is_contiguous()
+    assert torch.equal(dyq.ops.gemm(x, qweight, scales, 32, 8), dyq.ops.gemm(x.contiguous(), qweight, scales, 32, 8))
+
+
+def test_all_zero_activation_group_contributes_exactly_zero(rng):
+    w = random_weight(8, 128, rng)
+    qweight, scales = dyq.ops.quantize_weight(w, 64)
+    x = random_activations((3, 128), rng)
+    x[1, :64] = 0
+    packed, s, z = dyq.ops.quantize_activations(x, 64, 4)
+    assert s[1, 0] == 1.0 and z[1, 0] == 0 and torch.equal(packed[1, :32], torch.zeros(32, dtype=torch.uint8))
+    for bits in ACT_BITS:
+        assert_gemm_close(dyq.ops.gemm(x, qweight, scales, 64, bits), x, qweight, scales, 64, bits)
+
+
+@pytest.mark.parametrize("act_bits", ACT_BITS)
+@pytest.mark.parametrize("bad", (float("nan"), float("inf")))
+def test_non_finite_input_row_gives_nan_row_and_leaves_others_finite(act_bits, bad, rng):
+    qweight, scales = dyq.ops.quantize_weight(random_weight(12, 128, rng), 64)
+    x = random_activations((4, 128), rng)
+    x[2, 5] = bad
+    out = dyq.ops.gemm(x, qweight, scales, 64, act_bits)
+    assert torch.isfinite(out[[0, 1, 3]]).all()
+    assert not torch.isfinite(out[2]).any()
+    if act_bits != 16:
+        assert out[2].isnan().all()
+
+
+def test_error_shrinks_as_bits_grow_on_realistic_inputs(rng):
+    """Relative error against the float64 product with the dequantized weight: A2 > A4 > A8 > A16."""
+    w = random_weight(256, 1024, rng)
+    qweight, scales = dyq.ops.quantize_weight(w, 128)
+    x = random_activations((32, 1024), rng)
+    exact = x.double() @ reference.dequantize_weight(qweight, scales, 128).double().t()
+    errors = {b: ((dyq.ops.gemm(x, qweight, scales, 128, b).double() - exact).norm() / exact.norm()).item()
+              for b in ACT_BITS}
+    assert errors[2] > errors[4] > errors[8] > errors[16]
+    assert errors[16] < 1e-5 and errors[8] < 0.02 and errors[2] < 1.0
+
+
+@pytest.mark.parametrize("act_bits", ACT_BITS)
+def test_opcheck_gemm(act_bits, rng):
+    qweight, scales = dyq.ops.quantize_weight(random_weight(24, 128, rng), 64)
+    x = random_activations((3, 5, 128), rng)
+    bias = torch.randn(24, generator=rng)
+    torch.library.opcheck(torch.ops.dyq.gemm.default, (x, qweight, scales, 64, act_bits, bias))
+    torch.library.opcheck(torch.ops.dyq.gemm.default, (x.bfloat16(), qweight, scales, 64, act_bits, None))
+
+
+def test_opcheck_gemm_with_flag(rng):
+    qweight, scales = dyq.ops.quantize_weight(random_weight(24, 128, rng), 64)
+    x = random_activations((5, 128), rng)
+    torch.library.opcheck(torch.ops.dyq.gemm_with_flag.default,
+                          (x, qweight, scales, 64, dyq.PrecisionFlag(4).tensor, None))
+
+
+def test_opcheck_quantizers(rng):
+    w = random_weight(24, 128, rng)
+    torch.library.opcheck(torch.ops.dyq.quantize_weight.default, (w, 64))
+    qweight, scales = dyq.ops.quantize_weight(w, 64)
+    torch.library.opcheck(torch.ops.dyq.dequantize_weight.default, (qweight, scales, 64))
+    for bits in (2, 4, 8):
+        torch.library.opcheck(torch.ops.dyq.quantize_activations.default,
+                              (random_activations((2, 3, 128), rng), 64, bits))
+
+
+def test_ops_trace_with_meta_tensors():
+    x = torch.empty(4, 7, 256, device="meta", dtype=torch.bfloat16)
+    qweight = torch.empty(96, 128, device="meta", dtype=torch.uint8)
+    scales = torch.empty(96, 2, device="meta", dtype=torch.float32)
+    out = torch.ops.dyq.gemm(x, qweight, scales, 128, 4)
+    assert out.shape == (4, 7, 96) and out.dtype == torch.bfloat16 and out.device.type == "meta"
+
+
+def test_gemm_with_flag_compiles_once_for_every_flag_value(rng):
+    """The flag is data, not a constant: torch.compile traces once and follows every later write."""
+    qweight, scales = dyq.ops.quantize_weight(random_weight(32, 128, rng), 64)
+    x = random_activations((3, 128), rng)
+    flag = dyq.PrecisionFlag(16)
+    compiled = torch.compile(lambda inp: dyq.ops.gemm_with_flag(inp, qweight, scales, 64, flag.tensor) * 2,
+                             backend="eager", fullgraph=True)
+    for bits in (16, 2, 8, 4):
+        flag.bits = bits
+        assert torch.equal(compiled(x), dyq.ops.gemm(x, qweight, scales, 64, bits) * 2)
