@@ -1,0 +1,144 @@
+import dataclasses
+import json
+import math
+
+import pytest
+from hypothesis import given
+from hypothesis import strategies as st
+
+from dyq.dispatch import DispatchConfig
+
+
+def test_defaults_follow_the_paper_where_it_gives_values():
+    config = DispatchConfig()
+    assert config.macro_window == 10 and config.micro_window == 5
+    assert config.theta_fp == 0.5
+    assert config.percentile == 95.0
+    assert config.theta_2_4 <= config.theta_4_8 <= config.theta_fp
+    assert config.hysteresis == "counter"  # Algorithm 1 is the deployed form
+
+
+def test_save_and_load_round_trip(tmp_path):
+    config = DispatchConfig(fusion_weight=0.3, delay_window=5, hysteresis="window", xyz_slice=(1, 4), rot_slice=(4, 7))
+    path = tmp_path / "cfg.json"
+    config.save(path)
+    assert DispatchConfig.load(path) == config
+    assert json.loads(path.read_text())["xyz_slice"] == [1, 4]
+
+
+def test_paper_symbols_are_accepted_as_keys():
+    config = DispatchConfig.from_dict(
+        {"lambda": 0.7, "K": 4, "W_macro": 12, "W_micro": 3, "theta_2|4": 0.1, "theta_4|8": 0.2, "theta_fp": 0.4}
+    )
+    assert (config.fusion_weight, config.delay_window, config.macro_window, config.micro_window) == (0.7, 4, 12, 3)
+    assert (config.theta_2_4, config.theta_4_8, config.theta_fp) == (0.1, 0.2, 0.4)
+
+
+def test_unknown_key_is_rejected_naming_it():
+    with pytest.raises(ValueError, match="unknown config key 'lamda'"):
+        DispatchConfig.from_dict({"lamda": 0.5})
+
+
+def test_a_field_given_twice_is_rejected():
+    with pytest.raises(ValueError, match="given twice"):
+        DispatchConfig.from_dict({"K": 3, "delay_window": 4})
+
+
+def test_invalid_json_file_is_rejected(tmp_path):
+    path = tmp_path / "bad.json"
+    path.write_text("{not json")
+    with pytest.raises(ValueError, match="not valid JSON"):
+        DispatchConfig.load(path)
+
+
+def test_config_is_immutable():
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        DispatchConfig().theta_fp = 0.9
+
+
+def test_replace_validates_again():
+    assert DispatchConfig().replace(delay_window=7).delay_window == 7
+    with pytest.raises(ValueError, match="delay_window"):
+        DispatchConfig().replace(delay_window=0)
+
+
+BAD_VALUES = [
+    ({"fusion_weight": -0.1}, ValueError, r"fusion_weight \(lambda\) must be in \[0, 1\]"),
+    ({"fusion_weight": 1.5}, ValueError, r"fusion_weight \(lambda\) must be in \[0, 1\]"),
+    ({"fusion_weight": math.nan}, ValueError, "fusion_weight must be finite"),
+    ({"theta_2_4": 0.4, "theta_4_8": 0.3}, ValueError, "theta_2_4 <= theta_4_8 <= theta_fp"),
+    ({"theta_4_8": 0.6, "theta_fp": 0.5}, ValueError, "theta_2_4 <= theta_4_8 <= theta_fp"),
+    ({"theta_2_4": -0.1}, ValueError, "0 <= theta_2_4"),
+    ({"theta_fp": math.inf}, ValueError, "theta_fp must be finite"),
+    ({"theta_fp": "0.5"}, TypeError, "theta_fp must be a real number"),
+    ({"delay_window": 0}, ValueError, "delay_window must be an int >= 1"),
+    ({"delay_window": 2.0}, TypeError, "delay_window must be an int"),
+    ({"delay_window": True}, TypeError, "delay_window must be an int"),
+    ({"macro_window": 0}, ValueError, "macro_window must be an int >= 1"),
+    ({"micro_window": -1}, ValueError, "micro_window must be an int >= 1"),
+    ({"percentile": 0.0}, ValueError, r"percentile must be in \(0, 100\]"),
+    ({"percentile": 100.5}, ValueError, r"percentile must be in \(0, 100\]"),
+    ({"history": 0}, ValueError, "history must be an int >= 1"),
+    ({"warmup": 0}, ValueError, "warmup must be an int >= 1"),
+    ({"history": 8, "warmup": 9}, ValueError, r"warmup must be <= history \(8\)"),
+    ({"hysteresis": "sliding"}, ValueError, "hysteresis must be one of"),
+    ({"input": "joints"}, ValueError, "input must be one of"),
+    ({"xyz_slice": (3, 3)}, ValueError, "xyz_slice must satisfy 0 <= start < stop"),
+    ({"rot_slice": (-1, 2)}, ValueError, r"rot_slice\[0\] must be an int >= 0"),
+    ({"rot_slice": (3, 4, 5)}, TypeError, r"rot_slice must be a pair \(start, stop\)"),
+    ({"xyz_slice": "0:3"}, TypeError, r"xyz_slice must be a pair \(start, stop\)"),
+]
+
+
+@pytest.mark.parametrize("changes, error, message", BAD_VALUES)
+def test_bad_configuration_is_rejected_naming_the_argument(changes, error, message):
+    with pytest.raises(error, match=message):
+        DispatchConfig(**changes)
+
+
+@pytest.mark.parametrize("changes, error, message", BAD_VALUES)
+def test_bad_configuration_file_is_rejected_too(tmp_path, changes, error, message):
+    data = {**DispatchConfig().to_dict(), **changes}
+    data = {k: list(v) if isinstance(v, tuple) else v for k, v in data.items()}
+    path = tmp_path / "cfg.json"
+    path.write_text(json.dumps(data))  # NaN and Infinity are written as JSON extensions
+    with pytest.raises(error, match=message):
+        DispatchConfig.load(path)
+
+
+def test_min_length_covers_both_slices():
+    assert DispatchConfig().min_length == 6
+    assert DispatchConfig(xyz_slice=(0, 3), rot_slice=(6, 10)).min_length == 10
+
+
+valid_configs = st.builds(
+    lambda lam, thresholds, k, macro, micro, pct, history, warm, mode, kind: DispatchConfig(
+        fusion_weight=lam,
+        theta_2_4=thresholds[0],
+        theta_4_8=thresholds[1],
+        theta_fp=thresholds[2],
+        delay_window=k,
+        macro_window=macro,
+        micro_window=micro,
+        percentile=pct,
+        history=history,
+        warmup=min(warm, history),
+        hysteresis=mode,
+        input=kind,
+    ),
+    st.floats(0, 1),
+    st.lists(st.floats(0, 10), min_size=3, max_size=3).map(sorted),
+    st.integers(1, 20),
+    st.integers(1, 50),
+    st.integers(1, 50),
+    st.floats(0.1, 100),
+    st.integers(1, 4096),
+    st.integers(1, 100),
+    st.sampled_from(["window", "counter"]),
+    st.sampled_from(["action", "pose"]),
+)
+
+
+@given(valid_configs)
+def test_any_valid_config_survives_json(config):
+    assert DispatchConfig.from_dict(json.loads(json.dumps(config.to_dict()))) == config
