@@ -36,10 +36,10 @@ def test_fallback_precision_is_close_to_the_float_layer(rng):
     x = random_activations((8, 512), rng)
     expected = x @ layer.dequantized_weight().t() + linear.bias
     assert torch.allclose(layer(x), expected, rtol=1e-5, atol=1e-5)
-    # INT4 weights only: within a few percent of the original layer.
+    # Round-to-nearest INT4 of Gaussian weights: about 12 % RMS error per weight.
     with torch.no_grad():
         rel = (layer(x) - linear(x)).norm() / linear(x).norm()
-    assert rel < 0.1
+    assert rel < 0.15
 
 
 def test_quantized_weight_is_the_reference_quantization(rng):
