@@ -7,13 +7,21 @@ Quick start::
     dyq.set_precision(model, 4)                 # W4A4 for the next steps
 """
 from . import ops, reference
+from .dispatch import DispatchConfig, Hysteresis, KinematicDispatcher
 from .flag import VALID_BITS, PrecisionFlag
 from .linear import DyQLinear
 from .quantize import QuantizationReport, bind_flag, quantize_model, set_precision
+from .runtime import DyQRuntime, StepStats, force_precision
 
 __version__ = "0.1.0"
 
 __all__ = [
+    "DispatchConfig",
+    "DyQRuntime",
+    "Hysteresis",
+    "KinematicDispatcher",
+    "StepStats",
+    "force_precision",
     "DyQLinear",
     "PrecisionFlag",
     "QuantizationReport",
