@@ -18,7 +18,7 @@ void thread_parallel_for(int64_t begin, int64_t end, int64_t grain_size, const R
   const int64_t range = end - begin;
   const int64_t grain = std::max<int64_t>(grain_size, 1);
   const int64_t threads = std::max<int64_t>(std::thread::hardware_concurrency(), 1);
-  const int64_t chunks = std::min(threads, (range + grain - 1) / grain);
+  const int64_t chunks = std::min(threads, range / grain);
   if (chunks <= 1 || t_inside_parallel_region) {
     body(begin, end);
     return;

@@ -1,0 +1,206 @@
+// The GEMM (every implementation behind dyq::cpu::gemm) against a double-precision naive GEMM on the
+// codes of docs/numerics.md, section 3.
+#include <gtest/gtest.h>
+
+#include <cmath>
+#include <functional>
+#include <limits>
+#include <string>
+#include <tuple>
+
+#include "gemm/gemm_cpu.h"
+#include "gemm/gemm_cpu_paths.h"
+#include "naive_reference.h"
+#include "weight/weight_pack_cpu.h"
+
+namespace {
+
+using dyq::ScalarType;
+using GemmFn = std::function<void(const void*, ScalarType, const uint8_t*, const float*, const void*, int64_t,
+                                  int64_t, int64_t, int, int, void*)>;
+
+struct Implementation {
+  std::string name;
+  GemmFn run;
+};
+
+const std::vector<Implementation>& implementations() {
+  static const std::vector<Implementation> all = {{"gemm", dyq::cpu::gemm}, {"portable", dyq::cpu::gemm_portable}};
+  return all;
+}
+
+struct Problem {
+  int64_t m, n, k;
+  int group_size, act_bits;
+  bool with_bias;
+  uint32_t seed;
+};
+
+// Inputs as the kernel sees them (already rounded to the element type) and the packed weight.
+struct Inputs {
+  std::vector<float> x, bias;
+  naive::QuantizedWeight weight;
+  std::vector<uint8_t> qweight;
+};
+
+Inputs make_inputs(const Problem& p, const std::function<float(float)>& round_to_element) {
+  Inputs in;
+  in.x = naive::random_values(p.m * p.k, p.seed);
+  for (auto& v : in.x) v = round_to_element(v);
+  const auto weight = naive::random_values(p.n * p.k, p.seed + 1, 0.05f);
+  in.weight = naive::quantize_weight(weight, p.n, p.k, p.group_size);
+  in.qweight = naive::pack_weight(in.weight.codes);
+  if (p.with_bias) {
+    in.bias = naive::random_values(p.n, p.seed + 2);
+    for (auto& v : in.bias) v = round_to_element(v);
+  }
+  return in;
+}
+
+// The output must be the element rounding of an fp32 value within the fp32 rounding bound of the exact sum:
+// since rounding is monotonic, it lies between the roundings of the bound's two ends.
+template <typename Element>
+void expect_within_bound(const std::vector<Element>& out, const naive::GemmReference& ref, const std::string& what) {
+  constexpr double kRtol = 1e-5, kAtol = 1e-6;
+  for (size_t i = 0; i < out.size(); ++i) {
+    const double actual = static_cast<float>(out[i]);
+    const double slack = kAtol + kRtol * ref.magnitude[i];
+    const double lo = static_cast<float>(static_cast<Element>(static_cast<float>(ref.value[i] - slack)));
+    const double hi = static_cast<float>(static_cast<Element>(static_cast<float>(ref.value[i] + slack)));
+    ASSERT_TRUE(actual >= lo - kAtol && actual <= hi + kAtol)
+        << what << " element " << i << ": " << actual << " not in [" << lo << ", " << hi << "], exact "
+        << ref.value[i];
+  }
+}
+
+template <typename Element>
+void check_problem(const Problem& p, ScalarType dtype) {
+  const Inputs in = make_inputs(p, [](float v) { return static_cast<float>(static_cast<Element>(v)); });
+  const auto x = naive::to_element<Element>(in.x);
+  const auto bias = naive::to_element<Element>(in.bias);
+  const auto ref = naive::gemm(in.x, in.weight, in.bias, p.m, p.n, p.k, p.group_size, p.act_bits);
+  for (const auto& impl : implementations()) {
+    std::vector<Element> out(p.m * p.n, static_cast<Element>(-12345.0f));
+    impl.run(x.data(), dtype, in.qweight.data(), in.weight.scales.data(), p.with_bias ? bias.data() : nullptr, p.m,
+             p.n, p.k, p.group_size, p.act_bits, out.data());
+    expect_within_bound(out, ref,
+                        impl.name + " m " + std::to_string(p.m) + " n " + std::to_string(p.n) + " k " +
+                            std::to_string(p.k));
+  }
+}
+
+void check_problem(const Problem& p, ScalarType dtype) {
+  switch (dtype) {
+    case ScalarType::kFloat32:
+      return check_problem<float>(p, dtype);
+    case ScalarType::kBFloat16:
+      return check_problem<Eigen::bfloat16>(p, dtype);
+    case ScalarType::kFloat16:
+      return check_problem<Eigen::half>(p, dtype);
+  }
+}
+
+class GemmTest : public ::testing::TestWithParam<std::tuple<ScalarType, int, int, bool>> {};
+
+TEST_P(GemmTest, MatchesNaiveReferenceOnSeveralShapes) {
+  const auto [dtype, act_bits, group_size, with_bias] = GetParam();
+  // Odd M, N not a multiple of 8, K of several groups and not always a multiple of 128.
+  const std::vector<std::tuple<int64_t, int64_t, int64_t>> shapes = {
+      {1, 37, group_size}, {3, 64, 3 * group_size}, {13, 133, 5 * group_size}, {40, 19, 2 * group_size}};
+  uint32_t seed = 100 * act_bits + group_size;
+  for (const auto& [m, n, k] : shapes) check_problem({m, n, k, group_size, act_bits, with_bias, seed++}, dtype);
+}
+
+INSTANTIATE_TEST_SUITE_P(
+    AllFormats, GemmTest,
+    ::testing::Combine(::testing::Values(ScalarType::kFloat32, ScalarType::kBFloat16, ScalarType::kFloat16),
+                       ::testing::Values(2, 4, 8, 16), ::testing::Values(32, 64, 128), ::testing::Bool()));
+
+class GemmEdgeTest : public ::testing::TestWithParam<int> {};
+
+TEST_P(GemmEdgeTest, EmptyBatchWritesNothing) {
+  const int act_bits = GetParam();
+  const Inputs in = make_inputs({1, 8, 64, 32, act_bits, false, 1}, [](float v) { return v; });
+  std::vector<float> out(1, 7.0f);
+  for (const auto& impl : implementations()) {
+    impl.run(in.x.data(), ScalarType::kFloat32, in.qweight.data(), in.weight.scales.data(), nullptr, 0, 8, 64, 32,
+             act_bits, out.data());
+    EXPECT_EQ(out[0], 7.0f) << impl.name;
+  }
+}
+
+TEST_P(GemmEdgeTest, AllZeroGroupsContributeNothing) {
+  const int act_bits = GetParam();
+  const Problem p{5, 21, 4 * 32, 32, act_bits, true, 9};
+  Inputs in = make_inputs(p, [](float v) { return v; });
+  for (int64_t row = 0; row < p.m; ++row) {
+    for (int i = 0; i < 32; ++i) in.x[row * p.k + 32 + i] = 0.0f;  // activation group 1 of every row
+  }
+  for (int64_t col = 0; col < p.n; ++col) {
+    for (int i = 0; i < 32; ++i) in.weight.codes[col * p.k + 64 + i] = 0;  // weight group 2 of every column
+    in.weight.scales[col * 4 + 2] = 1.0f;
+  }
+  in.qweight = naive::pack_weight(in.weight.codes);
+  const auto ref = naive::gemm(in.x, in.weight, in.bias, p.m, p.n, p.k, p.group_size, act_bits);
+  for (const auto& impl : implementations()) {
+    std::vector<float> out(p.m * p.n);
+    impl.run(in.x.data(), ScalarType::kFloat32, in.qweight.data(), in.weight.scales.data(), in.bias.data(), p.m, p.n,
+             p.k, p.group_size, act_bits, out.data());
+    expect_within_bound(out, ref, impl.name);
+  }
+}
+
+TEST_P(GemmEdgeTest, NaNRowIsNaNAndOtherRowsAreUntouched) {
+  const int act_bits = GetParam();
+  const Problem p{6, 45, 3 * 64, 64, act_bits, false, 21};
+  Inputs in = make_inputs(p, [](float v) { return v; });
+  const int64_t nan_row = 4;
+  in.x[nan_row * p.k + 70] = NAN;
+  const auto ref = naive::gemm(in.x, in.weight, in.bias, p.m, p.n, p.k, p.group_size, act_bits);
+  for (const auto& impl : implementations()) {
+    std::vector<float> out(p.m * p.n);
+    impl.run(in.x.data(), ScalarType::kFloat32, in.qweight.data(), in.weight.scales.data(), nullptr, p.m, p.n, p.k,
+             p.group_size, act_bits, out.data());
+    for (int64_t row = 0; row < p.m; ++row) {
+      for (int64_t col = 0; col < p.n; ++col) {
+        const double actual = out[row * p.n + col], exact = ref.value[row * p.n + col];
+        if (row == nan_row) {
+          ASSERT_TRUE(std::isnan(actual)) << impl.name << " column " << col;
+        } else {
+          ASSERT_NEAR(actual, exact, 1e-6 + 1e-5 * ref.magnitude[row * p.n + col]) << impl.name;
+        }
+      }
+    }
+  }
+}
+
+INSTANTIATE_TEST_SUITE_P(AllActBits, GemmEdgeTest, ::testing::Values(2, 4, 8, 16));
+
+TEST(Gemm, InfinityMakesTheQuantizedRowNaN) {
+  const Problem p{3, 17, 128, 128, 4, false, 5};
+  Inputs in = make_inputs(p, [](float v) { return v; });
+  in.x[1 * p.k + 9] = INFINITY;
+  for (const auto& impl : implementations()) {
+    std::vector<float> out(p.m * p.n);
+    impl.run(in.x.data(), ScalarType::kFloat32, in.qweight.data(), in.weight.scales.data(), nullptr, p.m, p.n, p.k,
+             p.group_size, p.act_bits, out.data());
+    for (int64_t col = 0; col < p.n; ++col) {
+      EXPECT_TRUE(std::isnan(out[p.n + col])) << impl.name;
+      EXPECT_TRUE(std::isfinite(out[col])) << impl.name;
+    }
+  }
+}
+
+// Shapes large enough for every blocking and threading path of the kernels.
+class GemmLargeTest : public ::testing::TestWithParam<std::tuple<int, int>> {};
+
+TEST_P(GemmLargeTest, MatchesNaiveReference) {
+  const auto [act_bits, m] = GetParam();
+  check_problem({m, 300, 640, 128, act_bits, true, 77u + m}, ScalarType::kFloat32);
+  check_problem({m, 77, 352, 32, act_bits, false, 78u + m}, ScalarType::kBFloat16);
+}
+
+INSTANTIATE_TEST_SUITE_P(Shapes, GemmLargeTest,
+                         ::testing::Combine(::testing::Values(2, 4, 8, 16), ::testing::Values(1, 2, 7, 33, 70)));
+
+}  // namespace
