@@ -32,7 +32,7 @@ from .dispatch import KinematicDispatcher
 from .flag import VALID_BITS, PrecisionFlag, check_bits
 
 
-@dataclasses.dataclass(frozen=True)
+@dataclasses.dataclass
 class StepStats:
     """What one control step did.
 
@@ -149,7 +149,8 @@ class DyQRuntime:
         start = time.perf_counter()
         result = decode(prefill_output)
         decode_ms = (time.perf_counter() - start) * 1e3
-        self._stats[-1] = dataclasses.replace(self._stats[-1], prefill_ms=prefill_ms, decode_ms=decode_ms)
+        stats = self._stats[-1]
+        stats.prefill_ms, stats.decode_ms = prefill_ms, decode_ms
         return result
 
     def begin_step(self, kinematics) -> None:
