@@ -6,6 +6,7 @@
 
 #include "activation/act_quant_cpu_row.h"
 #include "common/cpu_dtype.h"
+#include "gemm/gemm_cpu_avx512.h"
 #include "gemm/gemm_cpu_paths.h"
 #include "parallel/parallel.h"
 
@@ -115,7 +116,16 @@ void gemm_portable(const void* x, ScalarType dtype, const uint8_t* qweight, cons
 
 void gemm(const void* x, ScalarType dtype, const uint8_t* qweight, const float* scales, const void* bias,
           int64_t m, int64_t n, int64_t k, int group_size, int act_bits, void* out) {
+#if defined(DYQ_GEMM_AVX512)
+  if (m == 0 || n == 0) return;
+  dispatch_element_type(dtype, [&](auto element) {
+    using Element = decltype(element);
+    avx512::gemm(static_cast<const Element*>(x), qweight, scales, static_cast<const Element*>(bias), m, n, k,
+                 group_size, act_bits, static_cast<Element*>(out));
+  });
+#else
   gemm_portable(x, dtype, qweight, scales, bias, m, n, k, group_size, act_bits, out);
+#endif
 }
 
 }  // namespace dyq::cpu

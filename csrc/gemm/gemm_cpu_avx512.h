@@ -1,0 +1,284 @@
+// The AVX-512 (VNNI) GEMM behind dyq::cpu::gemm on CPUs that have it (docs/numerics.md, section 3).
+//
+// Both kernels stream each packed weight row once per tile of activation rows and never materialize
+// unpacked weights in memory:
+// - act_bits 2/4/8: a 64-byte load holds 128 columns of one weight row. Splitting it into low and high
+//   nibbles gives the even and the odd columns as s8 codes, so the activation codes are stored in the
+//   same even/odd order (QuantizedBlock) and one vpdpbusd (u8 q_x times s8 q_w) per half forms exact
+//   integer sums of 8 columns per int32 lane. Lane i covers columns 8i..8i+7, hence lies in a single
+//   group for every group size: each lane carries its group's s_x, s_w and z_x, and the zero-point term
+//   z_x * sum(q_w) is subtracted in fp32, which is exact because both are integers below 2^24.
+// - act_bits 16: 16 packed bytes (32 columns) are widened to int32 lanes and mapped nibble -> fp32 code
+//   with a 16-entry permute; x is stored as even/odd halves per 32 columns to match, and each group's
+//   fp32 partial sum is scaled by s_w once.
+#pragma once
+
+#if defined(__AVX512F__) && defined(__AVX512BW__) && defined(__AVX512VNNI__) && defined(__AVX512VBMI__)
+#define DYQ_GEMM_AVX512 1
+
+#include <immintrin.h>
+
+#include <algorithm>
+#include <cstring>
+#include <utility>
+#include <vector>
+
+#include "common/cpu_dtype.h"
+#include "common/format.h"
+#include "parallel/parallel.h"
+
+namespace dyq::cpu::avx512 {
+
+constexpr int64_t kBlockColumns = 128;  // columns in 64 bytes of packed weights
+constexpr int64_t kChunkColumns = 32;   // act_bits 16: columns in 16 bytes of packed weights
+constexpr int kMaxTileRows = 8;         // activation rows that share one pass over a weight row
+constexpr int64_t kWeightRowsPerBlock = 16;
+
+// 128 columns of one activation row, in the lane order of the act_bits 2/4/8 kernel.
+struct alignas(64) QuantizedBlock {
+  uint8_t even_codes[64];  // q_x of columns 0, 2, ..., 126
+  uint8_t odd_codes[64];   // q_x of columns 1, 3, ..., 127
+  float zero_lanes[16];    // z_x of the group of columns 8i..8i+7 (0 past k)
+  float scale_lanes[16];   // s_x of that group (0 past k)
+};
+
+template <typename Element>
+void load_row_fp32(const Element* x, int64_t k, float* out) {
+  if constexpr (std::is_same_v<Element, float>) {
+    std::memcpy(out, x, k * sizeof(float));
+  } else {
+    // k is a multiple of 32, so whole vectors of 16.
+    const auto* bits = reinterpret_cast<const uint16_t*>(x);
+    for (int64_t i = 0; i < k; i += 16) {
+      const __m256i halves = _mm256_loadu_si256(reinterpret_cast<const __m256i*>(bits + i));
+      __m512 values;
+      if constexpr (std::is_same_v<Element, Eigen::bfloat16>) {
+        values = _mm512_castsi512_ps(_mm512_slli_epi32(_mm512_cvtepu16_epi32(halves), 16));
+      } else {
+        values = _mm512_cvtph_ps(halves);
+      }
+      _mm512_storeu_ps(out + i, values);
+    }
+  }
+}
+
+// Codes of one row (k a multiple of 32), bit-identical to activation_group_params / activation_code:
+// vdivps and vrndscaleps (round to nearest even) are exact IEEE operations.
+inline void quantize_row_codes(const float* row, int64_t k, int group_size, int act_bits, uint8_t* codes,
+                               ActivationGroupParams* params) {
+  const __m512 zero = _mm512_setzero_ps();
+  const __m512 levels = _mm512_set1_ps(static_cast<float>((1 << act_bits) - 1));
+  for (int64_t g = 0; g < k / group_size; ++g) {
+    const float* v = row + g * group_size;
+    __m512 group_min = zero, group_max = zero;
+    __mmask16 nonfinite = 0;
+    for (int i = 0; i < group_size; i += 16) {
+      const __m512 values = _mm512_loadu_ps(v + i);
+      nonfinite |= _mm512_cmp_ps_mask(_mm512_sub_ps(values, values), zero, _CMP_NEQ_UQ);  // NaN or Inf
+      group_min = _mm512_min_ps(group_min, values);
+      group_max = _mm512_max_ps(group_max, values);
+    }
+    const ActivationGroupParams p = activation_group_params(_mm512_reduce_min_ps(group_min),
+                                                            _mm512_reduce_max_ps(group_max), act_bits, nonfinite != 0);
+    params[g] = p;
+    uint8_t* out = codes + g * group_size;
+    if (nonfinite != 0) {
+      std::memset(out, 0, group_size);
+      continue;
+    }
+    const __m512 scale = _mm512_set1_ps(p.scale);
+    const __m512 zero_point = _mm512_set1_ps(static_cast<float>(p.zero));
+    for (int i = 0; i < group_size; i += 16) {
+      const __m512 ratio = _mm512_div_ps(_mm512_loadu_ps(v + i), scale);
+      const __m512 rounded = _mm512_roundscale_ps(ratio, _MM_FROUND_TO_NEAREST_INT | _MM_FROUND_NO_EXC);
+      const __m512 code = _mm512_min_ps(_mm512_max_ps(_mm512_add_ps(rounded, zero_point), zero), levels);
+      _mm_storeu_si128(reinterpret_cast<__m128i*>(out + i), _mm512_cvtepi32_epi8(_mm512_cvtps_epi32(code)));
+    }
+  }
+}
+
+inline __m512i even_byte_indices() {
+  alignas(64) uint8_t idx[64];
+  for (int i = 0; i < 64; ++i) idx[i] = static_cast<uint8_t>(2 * i);
+  return _mm512_load_si512(idx);
+}
+
+// Activations quantized into QuantizedBlocks, ceil(k / 128) per row (the last one zero-padded).
+template <typename Element>
+std::vector<QuantizedBlock> quantize_activation_blocks(const Element* x, int64_t m, int64_t k, int group_size,
+                                                       int act_bits) {
+  const int64_t blocks = (k + kBlockColumns - 1) / kBlockColumns;
+  std::vector<QuantizedBlock> quantized(m * blocks);
+  parallel_for(0, m, 4, [&](int64_t row_begin, int64_t row_end) {
+    std::vector<float> row(k);
+    std::vector<uint8_t> codes(blocks * kBlockColumns, 0);
+    std::vector<ActivationGroupParams> params(k / group_size);
+    const __m512i even = even_byte_indices();
+    const __m512i odd = _mm512_add_epi8(even, _mm512_set1_epi8(1));
+    for (int64_t r = row_begin; r < row_end; ++r) {
+      load_row_fp32(x + r * k, k, row.data());
+      quantize_row_codes(row.data(), k, group_size, act_bits, codes.data(), params.data());
+      for (int64_t t = 0; t < blocks; ++t) {
+        QuantizedBlock& block = quantized[r * blocks + t];
+        const __m512i first = _mm512_loadu_si512(codes.data() + t * kBlockColumns);
+        const __m512i second = _mm512_loadu_si512(codes.data() + t * kBlockColumns + 64);
+        _mm512_store_si512(block.even_codes, _mm512_permutex2var_epi8(first, even, second));
+        _mm512_store_si512(block.odd_codes, _mm512_permutex2var_epi8(first, odd, second));
+        for (int lane = 0; lane < 16; ++lane) {
+          const int64_t column = t * kBlockColumns + 8 * lane;
+          const bool inside = column < k;
+          block.zero_lanes[lane] = inside ? static_cast<float>(params[column / group_size].zero) : 0.0f;
+          block.scale_lanes[lane] = inside ? params[column / group_size].scale : 0.0f;
+        }
+      }
+    }
+  });
+  return quantized;
+}
+
+// act_bits 16: x in fp32, each 32 columns stored as the 16 even then the 16 odd ones.
+template <typename Element>
+std::vector<float> deinterleave_activations(const Element* x, int64_t m, int64_t k) {
+  std::vector<float> deinterleaved(m * k);
+  parallel_for(0, m, 4, [&](int64_t row_begin, int64_t row_end) {
+    std::vector<float> row(k);
+    const __m512i even = _mm512_set_epi32(30, 28, 26, 24, 22, 20, 18, 16, 14, 12, 10, 8, 6, 4, 2, 0);
+    const __m512i odd = _mm512_add_epi32(even, _mm512_set1_epi32(1));
+    for (int64_t r = row_begin; r < row_end; ++r) {
+      load_row_fp32(x + r * k, k, row.data());
+      for (int64_t c = 0; c < k; c += kChunkColumns) {
+        const __m512 first = _mm512_loadu_ps(row.data() + c);
+        const __m512 second = _mm512_loadu_ps(row.data() + c + 16);
+        _mm512_storeu_ps(&deinterleaved[r * k + c], _mm512_permutex2var_ps(first, even, second));
+        _mm512_storeu_ps(&deinterleaved[r * k + c + 16], _mm512_permutex2var_ps(first, odd, second));
+      }
+    }
+  });
+  return deinterleaved;
+}
+
+// sums[r] = y[r] (without bias) for one weight row and kRows quantized activation rows.
+template <int kRows>
+void quantized_row_kernel(const uint8_t* weight_row, const float* scales_row, int64_t k, int group_size,
+                          const QuantizedBlock* const* rows, float* sums) {
+  const int64_t full_blocks = k / kBlockColumns;
+  const int64_t tail_columns = k % kBlockColumns;
+  const int64_t groups_per_block = kBlockColumns / group_size;
+  const __m512i low_nibbles = _mm512_set1_epi8(0x0F);
+  const __m512i sign_extend = _mm512_broadcast_i32x4(_mm_setr_epi8(0, 1, 2, 3, 4, 5, 6, 7, -8, -7, -6, -5, -4, -3, -2, -1));
+  const __m512i ones = _mm512_set1_epi8(1);
+  // Lane i covers columns 8i..8i+7 of the block: group i * 8 / group_size of it.
+  const __m512i lane_group = _mm512_srli_epi32(_mm512_slli_epi32(_mm512_set_epi32(15, 14, 13, 12, 11, 10, 9, 8, 7, 6, 5, 4, 3, 2, 1, 0), 3),
+                                               __builtin_ctz(group_size));
+  __m512 acc[kRows];
+  for (int r = 0; r < kRows; ++r) acc[r] = _mm512_setzero_ps();
+  const int64_t blocks = full_blocks + (tail_columns != 0);
+  for (int64_t t = 0; t < blocks; ++t) {
+    const bool full = t < full_blocks;
+    const __mmask64 byte_mask = full ? ~__mmask64{0} : (__mmask64{1} << (tail_columns / 2)) - 1;
+    const __mmask16 scale_mask = full ? (1u << groups_per_block) - 1 : (1u << (tail_columns / group_size)) - 1;
+    const __m512i packed = _mm512_maskz_loadu_epi8(byte_mask, weight_row + t * (kBlockColumns / 2));
+    const __m512i even = _mm512_shuffle_epi8(sign_extend, _mm512_and_si512(packed, low_nibbles));
+    const __m512i odd = _mm512_shuffle_epi8(sign_extend, _mm512_and_si512(_mm512_srli_epi16(packed, 4), low_nibbles));
+    const __m512 weight_sums = _mm512_cvtepi32_ps(
+        _mm512_dpbusd_epi32(_mm512_dpbusd_epi32(_mm512_setzero_si512(), ones, even), ones, odd));
+    const __m512 weight_scales = _mm512_permutexvar_ps(
+        lane_group, _mm512_maskz_loadu_ps(scale_mask, scales_row + t * groups_per_block));
+    for (int r = 0; r < kRows; ++r) {
+      const QuantizedBlock& block = rows[r][t];
+      const __m512i dot = _mm512_dpbusd_epi32(
+          _mm512_dpbusd_epi32(_mm512_setzero_si512(), _mm512_load_si512(block.even_codes), even),
+          _mm512_load_si512(block.odd_codes), odd);
+      // P = sum q_x q_w - z_x sum q_w, exact in fp32 (integers below 2^24).
+      const __m512 partial = _mm512_fnmadd_ps(weight_sums, _mm512_load_ps(block.zero_lanes), _mm512_cvtepi32_ps(dot));
+      acc[r] = _mm512_fmadd_ps(partial, _mm512_mul_ps(weight_scales, _mm512_load_ps(block.scale_lanes)), acc[r]);
+    }
+  }
+  for (int r = 0; r < kRows; ++r) sums[r] = _mm512_reduce_add_ps(acc[r]);
+}
+
+template <int kRows>
+void fp32_row_kernel(const uint8_t* weight_row, const float* scales_row, int64_t k, int group_size,
+                     const float* const* rows, float* sums) {
+  const __m512 code_values = _mm512_setr_ps(0, 1, 2, 3, 4, 5, 6, 7, -8, -7, -6, -5, -4, -3, -2, -1);
+  __m512 acc[kRows];
+  for (int r = 0; r < kRows; ++r) acc[r] = _mm512_setzero_ps();
+  for (int64_t g = 0; g < k / group_size; ++g) {
+    __m512 group_acc[kRows];
+    for (int r = 0; r < kRows; ++r) group_acc[r] = _mm512_setzero_ps();
+    for (int64_t c = g * group_size; c < (g + 1) * group_size; c += kChunkColumns) {
+      const __m512i bytes = _mm512_cvtepu8_epi32(_mm_loadu_si128(reinterpret_cast<const __m128i*>(weight_row + c / 2)));
+      // vpermps reads only the low 4 bits of each index: the low nibble, then the high one shifted down.
+      const __m512 even = _mm512_permutexvar_ps(bytes, code_values);
+      const __m512 odd = _mm512_permutexvar_ps(_mm512_srli_epi32(bytes, 4), code_values);
+      for (int r = 0; r < kRows; ++r) {
+        group_acc[r] = _mm512_fmadd_ps(even, _mm512_loadu_ps(rows[r] + c), group_acc[r]);
+        group_acc[r] = _mm512_fmadd_ps(odd, _mm512_loadu_ps(rows[r] + c + 16), group_acc[r]);
+      }
+    }
+    const __m512 scale = _mm512_set1_ps(scales_row[g]);
+    for (int r = 0; r < kRows; ++r) acc[r] = _mm512_fmadd_ps(group_acc[r], scale, acc[r]);
+  }
+  for (int r = 0; r < kRows; ++r) sums[r] = _mm512_reduce_add_ps(acc[r]);
+}
+
+// Calls fn(std::integral_constant<int, rows>) for a runtime rows in [1, kMaxTileRows].
+template <int kRows = kMaxTileRows, typename Fn>
+void dispatch_tile_rows(int rows, Fn&& fn) {
+  if constexpr (kRows > 1) {
+    if (rows < kRows) return dispatch_tile_rows<kRows - 1>(rows, fn);
+  }
+  fn(std::integral_constant<int, kRows>());
+}
+
+// Runs row_kernel over tiles of activation rows for each weight row, threads splitting the weight rows.
+template <typename Element, typename ActivationRow, typename RowKernel>
+void run_tiles(const uint8_t* qweight, const float* scales, const Element* bias, int64_t m, int64_t n, int64_t k,
+               int group_size, Element* out, ActivationRow&& activation_row, RowKernel&& row_kernel) {
+  const int64_t groups = k / group_size;
+  parallel_for(0, n, kWeightRowsPerBlock, [&](int64_t col_begin, int64_t col_end) {
+    for (int64_t block_begin = col_begin; block_begin < col_end; block_begin += kWeightRowsPerBlock) {
+      const int64_t block_end = std::min(block_begin + kWeightRowsPerBlock, col_end);
+      for (int64_t row_begin = 0; row_begin < m; row_begin += kMaxTileRows) {
+        const int rows = static_cast<int>(std::min<int64_t>(kMaxTileRows, m - row_begin));
+        dispatch_tile_rows(rows, [&](auto tile_rows) {
+          constexpr int kRows = decltype(tile_rows)::value;
+          decltype(activation_row(0)) tile[kRows];
+          for (int r = 0; r < kRows; ++r) tile[r] = activation_row(row_begin + r);
+          float sums[kRows];
+          for (int64_t col = block_begin; col < block_end; ++col) {
+            row_kernel(tile_rows, qweight + col * (k / 2), scales + col * groups, tile, sums);
+            const float bias_value = bias != nullptr ? to_float(bias[col]) : 0.0f;
+            for (int r = 0; r < kRows; ++r) out[(row_begin + r) * n + col] = from_float<Element>(sums[r] + bias_value);
+          }
+        });
+      }
+    }
+  });
+}
+
+template <typename Element>
+void gemm(const Element* x, const uint8_t* qweight, const float* scales, const Element* bias, int64_t m, int64_t n,
+          int64_t k, int group_size, int act_bits, Element* out) {
+  if (act_bits == kFallbackBits) {
+    const std::vector<float> activations = deinterleave_activations(x, m, k);
+    run_tiles(
+        qweight, scales, bias, m, n, k, group_size, out, [&](int64_t r) { return activations.data() + r * k; },
+        [&](auto tile_rows, const uint8_t* weight_row, const float* scales_row, const float* const* rows, float* sums) {
+          fp32_row_kernel<decltype(tile_rows)::value>(weight_row, scales_row, k, group_size, rows, sums);
+        });
+    return;
+  }
+  const int64_t blocks = (k + kBlockColumns - 1) / kBlockColumns;
+  const std::vector<QuantizedBlock> activations = quantize_activation_blocks(x, m, k, group_size, act_bits);
+  run_tiles(
+      qweight, scales, bias, m, n, k, group_size, out, [&](int64_t r) { return activations.data() + r * blocks; },
+      [&](auto tile_rows, const uint8_t* weight_row, const float* scales_row, const QuantizedBlock* const* rows,
+          float* sums) {
+        quantized_row_kernel<decltype(tile_rows)::value>(weight_row, scales_row, k, group_size, rows, sums);
+      });
+}
+
+}  // namespace dyq::cpu::avx512
+
+#endif
