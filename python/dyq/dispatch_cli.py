@@ -16,6 +16,7 @@ import json
 import math
 import os
 import sys
+import warnings
 
 import numpy as np
 
@@ -37,10 +38,12 @@ def load_trajectory(path: str | os.PathLike, key: str | None = None) -> np.ndarr
                 raise ValueError(f"{path}: choose the trajectory with --key, one of {names}")
             data = archive[key]
     elif suffix == ".csv":
-        try:
-            data = np.loadtxt(path, delimiter=",", ndmin=2)
-        except ValueError:
-            data = np.loadtxt(path, delimiter=",", ndmin=2, skiprows=1)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", UserWarning)  # "no data": reported below as a bad shape
+            try:
+                data = np.loadtxt(path, delimiter=",", ndmin=2)
+            except ValueError:
+                data = np.loadtxt(path, delimiter=",", ndmin=2, skiprows=1)
     else:
         raise ValueError(f"{path}: expected a .npz or .csv trajectory")
     data = np.asarray(data, dtype=np.float64)
