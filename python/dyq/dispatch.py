@@ -30,7 +30,7 @@ from typing import Any
 
 import numpy as np
 
-from .flag import VALID_BITS, check_bits
+from .flag import check_bits
 
 FULL_PRECISION = 16
 HYSTERESIS_MODES = ("window", "counter")
