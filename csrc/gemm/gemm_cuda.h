@@ -1,0 +1,41 @@
+// The W4A2 / W4A4 / W4A8 / W4A16 GEMM on CUDA (docs/numerics.md, section 3; design in docs/cuda.md).
+// Torch-free: raw pointers, sizes and a stream. The CPU mirror is gemm_cpu.h.
+#pragma once
+
+#include <cuda_runtime.h>
+
+#include <cstdint>
+
+#include "common/cuda_precision.cuh"
+#include "common/format.h"
+
+namespace dyq::cuda {
+
+struct GemmArgs {
+  const void* x;            // [m, k] row-major, `dtype`, 16-byte aligned
+  ScalarType dtype;         // of x, bias and out
+  const uint8_t* qweight;   // [n, k/2], canonical packed INT4, 16-byte aligned
+  const float* scales;      // [n, k/group_size]
+  const void* bias;         // [n] or null
+  int64_t m, n, k;          // k % group_size == 0 (so k % 32 == 0)
+  int group_size;           // 32, 64 or 128
+  Precision precision;      // act_bits (2, 4, 8, 16), fixed or read on the device
+  void* workspace;          // gemm_workspace_bytes(m, k, group_size) bytes, 256-byte aligned
+  void* out;                // [m, n], `dtype`
+};
+
+// Rows up to this many take the decode path (a GEMV that streams the weights once, with the activation
+// quantization fused); more take the prefill path (quantize once, then a tiled tensor-core GEMM).
+constexpr int64_t kDecodeMaxRows = 16;
+
+// Bytes of scratch the GEMM needs (0 for the decode path).
+int64_t gemm_workspace_bytes(int64_t m, int64_t k, int group_size);
+
+// out = x W^T (+ bias). Enqueues one kernel (decode) or two (prefill) on `stream`; never synchronizes.
+cudaError_t gemm(const GemmArgs& args, cudaStream_t stream);
+
+// The two paths, called by gemm(); exposed so that the benchmark and tests can name them.
+cudaError_t gemm_decode(const GemmArgs& args, cudaStream_t stream);
+cudaError_t gemm_prefill(const GemmArgs& args, cudaStream_t stream);
+
+}  // namespace dyq::cuda
