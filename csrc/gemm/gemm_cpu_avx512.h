@@ -18,8 +18,11 @@
 
 #include <immintrin.h>
 
+#include <new>
+
 #include <algorithm>
 #include <cstring>
+#include <type_traits>
 #include <utility>
 #include <vector>
 
@@ -33,6 +36,23 @@ constexpr int64_t kBlockColumns = 128;  // columns in 64 bytes of packed weights
 constexpr int64_t kChunkColumns = 32;   // act_bits 16: columns in 16 bytes of packed weights
 constexpr int kMaxTileRows = 8;         // activation rows that share one pass over a weight row
 constexpr int64_t kWeightRowsPerBlock = 16;
+// From this many activation rows on, the panel path (measured crossover between 8 and 16 rows).
+constexpr int64_t kPanelMinRows = 12;
+
+// Cache-line aligned storage, so that full-vector loads never split a line.
+template <typename T>
+struct CacheLineAllocator {
+  using value_type = T;
+  CacheLineAllocator() = default;
+  template <typename U>
+  CacheLineAllocator(const CacheLineAllocator<U>&) {}
+  T* allocate(size_t count) { return static_cast<T*>(::operator new(count * sizeof(T), std::align_val_t{64})); }
+  void deallocate(T* p, size_t) { ::operator delete(p, std::align_val_t{64}); }
+  bool operator==(const CacheLineAllocator&) const { return true; }
+  bool operator!=(const CacheLineAllocator&) const { return false; }
+};
+template <typename T>
+using AlignedVector = std::vector<T, CacheLineAllocator<T>>;
 
 // 128 columns of one activation row, in the lane order of the act_bits 2/4/8 kernel.
 struct alignas(64) QuantizedBlock {
@@ -223,12 +243,12 @@ void fp32_row_kernel(const uint8_t* weight_row, const float* scales_row, int64_t
 }
 
 // Calls fn(std::integral_constant<int, rows>) for a runtime rows in [1, kMaxTileRows].
-template <int kRows = kMaxTileRows, typename Fn>
+template <int kMax = kMaxTileRows, typename Fn>
 void dispatch_tile_rows(int rows, Fn&& fn) {
-  if constexpr (kRows > 1) {
-    if (rows < kRows) return dispatch_tile_rows<kRows - 1>(rows, fn);
+  if constexpr (kMax > 1) {
+    if (rows < kMax) return dispatch_tile_rows<kMax - 1>(rows, fn);
   }
-  fn(std::integral_constant<int, kRows>());
+  fn(std::integral_constant<int, kMax>());
 }
 
 // Runs row_kernel over tiles of activation rows for each weight row, threads splitting the weight rows.
@@ -257,9 +277,249 @@ void run_tiles(const uint8_t* qweight, const float* scales, const Element* bias,
   });
 }
 
+// ---- panel path for many activation rows -------------------------------------------------------
+//
+// For large m the work is compute-bound, so the weights are unpacked once per call into panels of
+// kPanelColumns weight rows by kPanelDepth columns, transposed so that one micro-kernel step loads the
+// codes of all 32 output columns as two vectors and multiplies them with a broadcast activation: 32
+// output columns x kPanelTileRows activation rows of accumulators stay in registers for a whole group,
+// whose scales are then applied once. act_bits 2/4/8 step over 4 columns with vpdpbusd (u8 q_x
+// broadcast as a dword, s8 q_w) and correct the zero point per group as in the row kernel; act_bits
+// 16 step over one column with fp32 FMAs.
+constexpr int64_t kPanelColumns = 32;
+constexpr int kPanelTileRows = 6;  // 12 accumulators; 8 or 12 rows measured slower
+constexpr int64_t kPanelDepth = 512;  // a multiple of 128, hence of every group size
+
+// Weight row segment -> one s8 code per column (columns a multiple of 32).
+inline void unpack_weight_codes(const uint8_t* packed, int64_t columns, int8_t* codes) {
+  const __m512i low_nibbles = _mm512_set1_epi8(0x0F);
+  const __m512i sign_extend = _mm512_broadcast_i32x4(_mm_setr_epi8(0, 1, 2, 3, 4, 5, 6, 7, -8, -7, -6, -5, -4, -3, -2, -1));
+  alignas(64) uint8_t first_indices[64], second_indices[64];
+  for (int i = 0; i < 32; ++i) {
+    first_indices[2 * i] = static_cast<uint8_t>(i);  // low nibble of byte i: column 2i
+    first_indices[2 * i + 1] = static_cast<uint8_t>(64 + i);
+    second_indices[2 * i] = static_cast<uint8_t>(32 + i);
+    second_indices[2 * i + 1] = static_cast<uint8_t>(96 + i);
+  }
+  const __m512i first_order = _mm512_load_si512(first_indices), second_order = _mm512_load_si512(second_indices);
+  auto prefix_mask = [](int64_t count) { return count >= 64 ? ~__mmask64{0} : (__mmask64{1} << count) - 1; };
+  for (int64_t c = 0; c < columns; c += kBlockColumns) {
+    const int64_t count = std::min(kBlockColumns, columns - c);
+    const __m512i bytes = _mm512_maskz_loadu_epi8(prefix_mask(count / 2), packed + c / 2);
+    const __m512i even = _mm512_shuffle_epi8(sign_extend, _mm512_and_si512(bytes, low_nibbles));
+    const __m512i odd = _mm512_shuffle_epi8(sign_extend, _mm512_and_si512(_mm512_srli_epi16(bytes, 4), low_nibbles));
+    _mm512_mask_storeu_epi8(codes + c, prefix_mask(count), _mm512_permutex2var_epi8(even, first_order, odd));
+    if (count > 64) {
+      _mm512_mask_storeu_epi8(codes + c + 64, prefix_mask(count - 64), _mm512_permutex2var_epi8(even, second_order, odd));
+    }
+  }
+}
+
+template <bool kQuantized>
+struct WeightPanel {
+  // kQuantized: [depth / 4][32] dwords, the 4 s8 codes of columns 4t..4t+3 of each output column.
+  // Otherwise: [depth][32] fp32 codes.
+  using Step = std::conditional_t<kQuantized, int32_t, float>;
+  static constexpr int64_t kStepColumns = kQuantized ? 4 : 1;
+  std::vector<int8_t> row_codes = std::vector<int8_t>(kPanelColumns * kPanelDepth);  // [32][depth]
+  AlignedVector<Step> steps = AlignedVector<Step>(kPanelColumns * kPanelDepth / kStepColumns);
+  AlignedVector<float> scales = AlignedVector<float>(kPanelColumns * kPanelDepth / 32);       // [group][32]
+  AlignedVector<float> weight_sums = AlignedVector<float>(kPanelColumns * kPanelDepth / 32);  // [group][32]
+
+  // Columns [col_begin, col_begin + depth) of weight rows [row_begin, row_begin + 32); rows past n read as 0.
+  void pack(const uint8_t* qweight, const float* all_scales, int64_t n, int64_t k, int group_size, int64_t row_begin,
+            int64_t col_begin, int64_t depth) {
+    const int64_t groups = k / group_size, block_groups = depth / group_size;
+    for (int64_t j = 0; j < kPanelColumns; ++j) {
+      const int64_t row = row_begin + j;
+      int8_t* codes = row_codes.data() + j * depth;
+      if (row < n) {
+        unpack_weight_codes(qweight + row * (k / 2) + col_begin / 2, depth, codes);
+      } else {
+        std::memset(codes, 0, depth);
+      }
+      for (int64_t g = 0; g < block_groups; ++g) {
+        scales[g * kPanelColumns + j] = row < n ? all_scales[row * groups + col_begin / group_size + g] : 0.0f;
+      }
+    }
+    // Transpose with dword gathers: lane l of half h reads 4 codes of output column 16h + l.
+    const __m512i column_offsets =
+        _mm512_mullo_epi32(_mm512_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15),
+                           _mm512_set1_epi32(static_cast<int>(depth)));
+    const __m512i half_offset = _mm512_set1_epi32(static_cast<int>(16 * depth));
+    const __m512i ones = _mm512_set1_epi8(1);
+    for (int64_t g = 0; g < block_groups; ++g) {
+      __m512i sums[2] = {_mm512_setzero_si512(), _mm512_setzero_si512()};
+      for (int64_t quad = g * group_size / 4; quad < (g + 1) * group_size / 4; ++quad) {
+        for (int h = 0; h < 2; ++h) {
+          const __m512i offsets = h == 0 ? column_offsets : _mm512_add_epi32(column_offsets, half_offset);
+          const __m512i four_codes = _mm512_i32gather_epi32(offsets, row_codes.data() + 4 * quad, 1);
+          if constexpr (kQuantized) {
+            _mm512_store_si512(steps.data() + quad * kPanelColumns + 16 * h, four_codes);
+            sums[h] = _mm512_dpbusd_epi32(sums[h], ones, four_codes);
+          } else {
+            for (int b = 0; b < 4; ++b) {
+              const __m512i code = _mm512_srai_epi32(_mm512_slli_epi32(four_codes, 24 - 8 * b), 24);
+              _mm512_store_ps(steps.data() + (4 * quad + b) * kPanelColumns + 16 * h, _mm512_cvtepi32_ps(code));
+            }
+          }
+        }
+      }
+      for (int h = 0; h < 2; ++h) _mm512_storeu_ps(&weight_sums[g * kPanelColumns + 16 * h], _mm512_cvtepi32_ps(sums[h]));
+    }
+  }
+};
+
+// Activations as the panel kernel reads them: fp32 x, or u8 codes with per-group zero points and scales.
+template <bool kQuantized>
+struct PanelActivations {
+  std::vector<std::conditional_t<kQuantized, uint8_t, float>> values;  // [m, k]
+  std::vector<float> zeros, scales;                                     // [m, k / group_size], kQuantized only
+};
+
+template <typename Element>
+PanelActivations<true> quantize_panel_activations(const Element* x, int64_t m, int64_t k, int group_size, int act_bits) {
+  const int64_t groups = k / group_size;
+  PanelActivations<true> a{std::vector<uint8_t>(m * k), std::vector<float>(m * groups), std::vector<float>(m * groups)};
+  parallel_for(0, m, 4, [&](int64_t row_begin, int64_t row_end) {
+    std::vector<float> row(k);
+    std::vector<ActivationGroupParams> params(groups);
+    for (int64_t r = row_begin; r < row_end; ++r) {
+      load_row_fp32(x + r * k, k, row.data());
+      quantize_row_codes(row.data(), k, group_size, act_bits, a.values.data() + r * k, params.data());
+      for (int64_t g = 0; g < groups; ++g) {
+        a.zeros[r * groups + g] = static_cast<float>(params[g].zero);
+        a.scales[r * groups + g] = params[g].scale;
+      }
+    }
+  });
+  return a;
+}
+
+template <typename Element>
+PanelActivations<false> convert_panel_activations(const Element* x, int64_t m, int64_t k) {
+  PanelActivations<false> a{std::vector<float>(m * k), {}, {}};
+  parallel_for(0, m, 16, [&](int64_t row_begin, int64_t row_end) {
+    for (int64_t r = row_begin; r < row_end; ++r) load_row_fp32(x + r * k, k, a.values.data() + r * k);
+  });
+  return a;
+}
+
+template <bool kQuantized>
+struct PanelAccumulator {
+  using Type = __m512;
+};
+template <>
+struct PanelAccumulator<true> {
+  using Type = __m512i;  // exact int32 sums of one group
+};
+
+// totals[r][0..32) += the contribution of columns [col_begin, col_begin + depth) for activation rows
+// row_begin + r.
+template <bool kQuantized, int kRows>
+void panel_kernel(const WeightPanel<kQuantized>& panel, const PanelActivations<kQuantized>& activations, int64_t k,
+                  int group_size, int64_t row_begin, int64_t col_begin, int64_t depth, float* totals) {
+  using Accumulator = typename PanelAccumulator<kQuantized>::Type;
+  constexpr int64_t kStepColumns = WeightPanel<kQuantized>::kStepColumns;
+  const int64_t groups = k / group_size;
+  const auto* steps = panel.steps.data();
+  const std::conditional_t<kQuantized, uint8_t, float>* row_values[kRows];
+  for (int r = 0; r < kRows; ++r) row_values[r] = activations.values.data() + (row_begin + r) * k + col_begin;
+  for (int64_t g = 0; g < depth / group_size; ++g) {
+    Accumulator acc[kRows][2];
+    for (int r = 0; r < kRows; ++r) {
+      for (int h = 0; h < 2; ++h) {
+        if constexpr (kQuantized) acc[r][h] = _mm512_setzero_si512(); else acc[r][h] = _mm512_setzero_ps();
+      }
+    }
+    for (int64_t col = g * group_size; col < (g + 1) * group_size; col += kStepColumns) {
+      const auto* step = steps + (col / kStepColumns) * kPanelColumns;
+      if constexpr (kQuantized) {
+        const __m512i first = _mm512_load_si512(step), second = _mm512_load_si512(step + 16);
+        for (int r = 0; r < kRows; ++r) {
+          int32_t four_codes;
+          std::memcpy(&four_codes, row_values[r] + col, 4);
+          const __m512i broadcast = _mm512_set1_epi32(four_codes);
+          acc[r][0] = _mm512_dpbusd_epi32(acc[r][0], broadcast, first);
+          acc[r][1] = _mm512_dpbusd_epi32(acc[r][1], broadcast, second);
+        }
+      } else {
+        const __m512 first = _mm512_load_ps(step), second = _mm512_load_ps(step + 16);
+        for (int r = 0; r < kRows; ++r) {
+          const __m512 broadcast = _mm512_set1_ps(row_values[r][col]);
+          acc[r][0] = _mm512_fmadd_ps(broadcast, first, acc[r][0]);
+          acc[r][1] = _mm512_fmadd_ps(broadcast, second, acc[r][1]);
+        }
+      }
+    }
+    // The totals stay in memory: keeping them in registers too would make the compiler spill the inner loop.
+    const int64_t group = col_begin / group_size + g;
+    for (int h = 0; h < 2; ++h) {
+      const __m512 weight_scales = _mm512_loadu_ps(&panel.scales[g * kPanelColumns + 16 * h]);
+      if constexpr (kQuantized) {
+        const __m512 weight_sums = _mm512_loadu_ps(&panel.weight_sums[g * kPanelColumns + 16 * h]);
+        for (int r = 0; r < kRows; ++r) {
+          const int64_t at = (row_begin + r) * groups + group;
+          // P = sum q_x q_w - z_x sum q_w, exact in fp32 (integers below 2^24).
+          const __m512 partial =
+              _mm512_fnmadd_ps(weight_sums, _mm512_set1_ps(activations.zeros[at]), _mm512_cvtepi32_ps(acc[r][h]));
+          float* total = totals + r * kPanelColumns + 16 * h;
+          _mm512_storeu_ps(total, _mm512_fmadd_ps(partial, _mm512_mul_ps(weight_scales, _mm512_set1_ps(activations.scales[at])),
+                                                  _mm512_loadu_ps(total)));
+        }
+      } else {
+        for (int r = 0; r < kRows; ++r) {
+          float* total = totals + r * kPanelColumns + 16 * h;
+          _mm512_storeu_ps(total, _mm512_fmadd_ps(acc[r][h], weight_scales, _mm512_loadu_ps(total)));
+        }
+      }
+    }
+  }
+}
+
+template <bool kQuantized, typename Element>
+void run_panels(const PanelActivations<kQuantized>& activations, const uint8_t* qweight, const float* scales,
+                const Element* bias, int64_t m, int64_t n, int64_t k, int group_size, Element* out) {
+  const int64_t panels = (n + kPanelColumns - 1) / kPanelColumns;
+  parallel_for(0, panels, 1, [&](int64_t panel_begin, int64_t panel_end) {
+    WeightPanel<kQuantized> panel;
+    std::vector<float> totals(m * kPanelColumns);  // [m][32]
+    for (int64_t p = panel_begin; p < panel_end; ++p) {
+      const int64_t weight_row = p * kPanelColumns;
+      std::fill(totals.begin(), totals.end(), 0.0f);
+      for (int64_t col = 0; col < k; col += kPanelDepth) {
+        const int64_t depth = std::min(kPanelDepth, k - col);
+        panel.pack(qweight, scales, n, k, group_size, weight_row, col, depth);
+        for (int64_t row = 0; row < m; row += kPanelTileRows) {
+          dispatch_tile_rows<kPanelTileRows>(static_cast<int>(std::min<int64_t>(kPanelTileRows, m - row)), [&](auto rows) {
+            panel_kernel<kQuantized, decltype(rows)::value>(panel, activations, k, group_size, row, col, depth,
+                                                            totals.data() + row * kPanelColumns);
+          });
+        }
+      }
+      const int64_t columns = std::min(kPanelColumns, n - weight_row);
+      for (int64_t row = 0; row < m; ++row) {
+        for (int64_t j = 0; j < columns; ++j) {
+          const float bias_value = bias != nullptr ? to_float(bias[weight_row + j]) : 0.0f;
+          out[row * n + weight_row + j] = from_float<Element>(totals[row * kPanelColumns + j] + bias_value);
+        }
+      }
+    }
+  });
+}
+
 template <typename Element>
 void gemm(const Element* x, const uint8_t* qweight, const float* scales, const Element* bias, int64_t m, int64_t n,
           int64_t k, int group_size, int act_bits, Element* out) {
+  if (m >= kPanelMinRows) {
+    if (act_bits == kFallbackBits) {
+      run_panels(convert_panel_activations(x, m, k), qweight, scales, bias, m, n, k, group_size, out);
+    } else {
+      run_panels(quantize_panel_activations(x, m, k, group_size, act_bits), qweight, scales, bias, m, n, k,
+                 group_size, out);
+    }
+    return;
+  }
   if (act_bits == kFallbackBits) {
     const std::vector<float> activations = deinterleave_activations(x, m, k);
     run_tiles(
