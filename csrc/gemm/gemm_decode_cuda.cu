@@ -65,7 +65,9 @@ __global__ void __launch_bounds__(kThreads) gemm_decode_kernel(const GemmArgs a)
   const int lane = threadIdx.x % 32;
   const int64_t k = a.k;
   const int group_size = a.group_size;
-  const int64_t groups_per_row = k / group_size;
+  const int group_shift = 31 - __clz(group_size);  // G is a power of two: no integer division
+  const int group_lanes = group_size / 8;
+  const int64_t groups_per_row = k >> group_shift;
   const int64_t first_row = static_cast<int64_t>(blockIdx.x) * kRowsPerBlock + warp * kRowsPerWarp;
   const int64_t element_bytes = a.dtype == ScalarType::kFloat32 ? 4 : 2;
 
@@ -80,7 +82,7 @@ __global__ void __launch_bounds__(kThreads) gemm_decode_kernel(const GemmArgs a)
         const int64_t col = chunk_start + l * kColsPerWarpLoad + lane * kColsPerLane;
         if (row < a.n && col < k) {
           w[r][l] = __ldg(reinterpret_cast<const uint4*>(a.qweight + row * (k / 2) + col / 2));
-          w_scale[r][l] = __ldg(a.scales + row * groups_per_row + col / group_size);
+          w_scale[r][l] = __ldg(a.scales + row * groups_per_row + (col >> group_shift));
         } else {
           w[r][l] = make_uint4(0, 0, 0, 0);
           w_scale[r][l] = 0.0f;
@@ -136,13 +138,13 @@ __global__ void __launch_bounds__(kThreads) gemm_decode_kernel(const GemmArgs a)
                          pack_bf16x2(v[b][4], v[b][5]), pack_bf16x2(v[b][6], v[b][7]));
         } else {
           // Outside x the values are 0: scale 1, zero point 0, codes 0, so they add nothing.
-          const ActivationGroupParams params = group_params_across_lanes(v[b], true, group_size / 8, act_bits);
+          const ActivationGroupParams params = group_params_across_lanes(v[b], true, group_lanes, act_bits);
           uint32_t c[8];
           activation_codes8(v[b], params, act_bits, c);
           *reinterpret_cast<uint2*>(codes + row * kChunk + col) = deinterleaved_code_bytes8(c);
-          if (lane % (group_size / 8) == 0) {
-            group_scale[row * kMaxGroups + col / group_size] = params.scale;
-            group_zero[row * kMaxGroups + col / group_size] = params.zero;
+          if ((lane & (group_lanes - 1)) == 0) {
+            group_scale[row * kMaxGroups + (col >> group_shift)] = params.scale;
+            group_zero[row * kMaxGroups + (col >> group_shift)] = params.zero;
           }
         }
       }
@@ -195,7 +197,7 @@ __global__ void __launch_bounds__(kThreads) gemm_decode_kernel(const GemmArgs a)
               dot[m] = dp4a_u8_s8(cv.w, odd1, dot[m]);
             }
           }
-          const int group = col / group_size;
+          const int group = col >> group_shift;
 #pragma unroll
           for (int m = 0; m < kRows; ++m) {
             // |dot - z * sum q_w| <= 32 * 255 * 8 * 2 < 2^22: exact in fp32.

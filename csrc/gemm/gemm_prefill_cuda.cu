@@ -126,7 +126,8 @@ __device__ void prefill_block(const GemmArgs& a, const PreparedActivations& prep
   const int64_t n0 = static_cast<int64_t>(blockIdx.x) * kBlockN;
   const int64_t k = a.k;
   const int group_size = a.group_size;
-  const int64_t groups_per_row = k / group_size;
+  const int group_shift = 31 - __clz(group_size);  // G is a power of two: no integer division
+  const int64_t groups_per_row = k >> group_shift;
 
   const uint8_t* a_src = prepared.codes;
   int64_t a_pitch = prepared_row_bytes(k, kBits);
@@ -320,9 +321,9 @@ __device__ void prefill_block(const GemmArgs& a, const PreparedActivations& prep
     for (int step = 0; step < kStepsPerTile; ++step) {
       if (step < valid_steps) {
         const int64_t step_k = tile_k + step * Shape::kStepK;
-        if (step_k % group_size == 0) load_group_scales(step_k / group_size);
+        if ((step_k & (group_size - 1)) == 0) load_group_scales(step_k >> group_shift);
         mma_step(stage, step * Shape::kStepK);
-        if ((step_k + Shape::kStepK) % group_size == 0) flush_group();
+        if (((step_k + Shape::kStepK) & (group_size - 1)) == 0) flush_group();
       }
     }
     __syncthreads();  // the next iteration's copy overwrites this stage

@@ -1,0 +1,169 @@
+// CUDA registrations of the dyq operators: validation (checks.h), pointer extraction, the current
+// stream, then the torch-free kernels of csrc/*/*_cuda.h. Built only against a CUDA build of torch
+// (cmake/cuda_glue.cmake). Nothing here synchronizes with the device except quantize_weight, which
+// must report non-finite weights as an error.
+#include <ATen/cuda/CUDAContext.h>
+#include <ATen/ops/empty.h>
+#include <ATen/ops/zeros.h>
+#include <c10/cuda/CUDAGuard.h>
+#include <torch/library.h>
+
+#include "activation/act_quant_cuda.h"
+#include "gemm/gemm_cuda.h"
+#include "torch/checks.h"
+#include "weight/weight_pack_cuda.h"
+
+namespace dyq {
+namespace {
+
+void check_launch(cudaError_t err, const char* what) {
+  TORCH_CHECK(err == cudaSuccess, "dyq: CUDA ", what, " failed: ", cudaGetErrorString(err));
+}
+
+// The kernels read 16-byte vectors. A tensor from the caching allocator is aligned; a view with an odd
+// storage offset is copied (once per call) rather than refused.
+at::Tensor aligned_contiguous(const at::Tensor& t) {
+  at::Tensor c = t.contiguous();
+  return reinterpret_cast<uintptr_t>(c.const_data_ptr()) % 16 == 0 ? c : c.clone();
+}
+
+void check_on_cuda(const at::Tensor& x, const char* name) {
+  TORCH_CHECK(x.is_cuda(), "dyq: ", name, " must be a CUDA tensor here, got one on ", x.device());
+}
+
+std::tuple<at::Tensor, at::Tensor> quantize_weight_cuda(const at::Tensor& weight, int64_t group_size) {
+  check_group_size(group_size);
+  TORCH_CHECK(weight.is_floating_point(), "dyq: weight must be a floating-point tensor, got ", weight.scalar_type());
+  TORCH_CHECK(weight.dim() == 2, "dyq: weight must have shape [N, K], got ", weight.sizes());
+  const int64_t n = weight.size(0), k = weight.size(1);
+  check_k_divisible(k, group_size, "weight");
+  const c10::cuda::CUDAGuard guard(weight.device());
+  const at::Tensor w = weight.to(at::kFloat).contiguous();
+  at::Tensor qweight = at::empty({n, k / 2}, weight.options().dtype(at::kByte));
+  at::Tensor scales = at::empty({n, k / group_size}, weight.options().dtype(at::kFloat));
+  at::Tensor nonfinite = at::zeros({1}, weight.options().dtype(at::kInt));
+  check_launch(cuda::quantize_weight(w.const_data_ptr<float>(), n, k, static_cast<int>(group_size),
+                                     qweight.mutable_data_ptr<uint8_t>(), scales.mutable_data_ptr<float>(),
+                                     nonfinite.mutable_data_ptr<int32_t>(), at::cuda::getCurrentCUDAStream()),
+               "quantize_weight");
+  TORCH_CHECK(nonfinite.item<int32_t>() == 0, "dyq: weight contains NaN or Inf; static INT4 weights must be finite");
+  return {qweight, scales};
+}
+
+at::Tensor dequantize_weight_cuda(const at::Tensor& qweight, const at::Tensor& scales, int64_t group_size) {
+  check_group_size(group_size);
+  check_packed_weight(qweight, scales, group_size, qweight.device());
+  const c10::cuda::CUDAGuard guard(qweight.device());
+  const int64_t n = qweight.size(0), k = qweight.size(1) * 2;
+  at::Tensor out = at::empty({n, k}, scales.options());
+  check_launch(cuda::dequantize_weight(qweight.const_data_ptr<uint8_t>(), scales.const_data_ptr<float>(), n, k,
+                                       static_cast<int>(group_size), out.mutable_data_ptr<float>(),
+                                       at::cuda::getCurrentCUDAStream()),
+               "dequantize_weight");
+  return out;
+}
+
+std::tuple<at::Tensor, at::Tensor, at::Tensor> quantize_activations_cuda(const at::Tensor& x, int64_t group_size,
+                                                                         int64_t act_bits) {
+  check_group_size(group_size);
+  check_act_bits(act_bits, /*allow_fallback=*/false);
+  check_activation(x, "x");
+  const int64_t k = x.size(-1);
+  check_k_divisible(k, group_size, "x");
+  const c10::cuda::CUDAGuard guard(x.device());
+  const at::Tensor xc = aligned_contiguous(x);
+  const int64_t m = k == 0 ? 0 : xc.numel() / k;
+  std::vector<int64_t> packed_shape(x.sizes().begin(), x.sizes().end());
+  std::vector<int64_t> group_shape = packed_shape;
+  packed_shape.back() = packed_activation_bytes(k, static_cast<int>(act_bits));
+  group_shape.back() = k / group_size;
+  at::Tensor packed = at::empty(packed_shape, x.options().dtype(at::kByte));
+  at::Tensor scales = at::empty(group_shape, x.options().dtype(at::kFloat));
+  at::Tensor zeros = at::empty(group_shape, x.options().dtype(at::kByte));
+  check_launch(cuda::quantize_activations(xc.const_data_ptr(), to_dyq_dtype(x.scalar_type()), m, k,
+                                          static_cast<int>(group_size), static_cast<int>(act_bits),
+                                          packed.mutable_data_ptr<uint8_t>(), scales.mutable_data_ptr<float>(),
+                                          zeros.mutable_data_ptr<uint8_t>(), at::cuda::getCurrentCUDAStream()),
+               "quantize_activations");
+  return {packed, scales, zeros};
+}
+
+at::Tensor gemm_cuda_impl(const at::Tensor& x, const at::Tensor& qweight, const at::Tensor& scales, int64_t group_size,
+                          cuda::Precision precision, const std::optional<at::Tensor>& bias) {
+  const c10::cuda::CUDAGuard guard(x.device());
+  const int64_t n = qweight.size(0), k = qweight.size(1) * 2;
+  at::Tensor out = at::empty(gemm_output_shape(x, n), x.options());
+  const at::Tensor xc = aligned_contiguous(x);
+  const at::Tensor qweight_c = aligned_contiguous(qweight);
+  const int64_t m = k == 0 ? 0 : xc.numel() / k;
+  if (m == 0 || n == 0) return out;
+  const at::Tensor bias_c = bias.has_value() ? bias->contiguous() : at::Tensor();
+  // Scratch from the caching allocator: stream-ordered, and drawn from the graph's pool under capture.
+  const int64_t workspace_bytes = cuda::gemm_workspace_bytes(m, k, static_cast<int>(group_size));
+  const at::Tensor workspace =
+      workspace_bytes > 0 ? at::empty({workspace_bytes}, x.options().dtype(at::kByte)) : at::Tensor();
+  cuda::GemmArgs args{};
+  args.x = xc.const_data_ptr();
+  args.dtype = to_dyq_dtype(x.scalar_type());
+  args.qweight = qweight_c.const_data_ptr<uint8_t>();
+  args.scales = scales.const_data_ptr<float>();
+  args.bias = bias_c.defined() ? bias_c.const_data_ptr() : nullptr;
+  args.m = m;
+  args.n = n;
+  args.k = k;
+  args.group_size = static_cast<int>(group_size);
+  args.precision = precision;
+  args.workspace = workspace.defined() ? workspace.mutable_data_ptr() : nullptr;
+  args.out = out.mutable_data_ptr();
+  check_launch(cuda::gemm(args, at::cuda::getCurrentCUDAStream()), "gemm");
+  return out;
+}
+
+at::Tensor gemm_cuda(const at::Tensor& x, const at::Tensor& qweight, const at::Tensor& scales, int64_t group_size,
+                     int64_t act_bits, const std::optional<at::Tensor>& bias) {
+  check_gemm_args(x, qweight, scales, group_size, bias);
+  check_act_bits(act_bits);
+  return gemm_cuda_impl(x, qweight, scales, group_size, cuda::fixed_precision(static_cast<int>(act_bits)), bias);
+}
+
+// The address the kernels read the flag at. Pinned host memory is mapped into the device's address
+// space (unified addressing), so the kernel reads the host's latest write with no copy; a CUDA int32
+// on x's device is read in place.
+const int32_t* device_visible_flag(const at::Tensor& flag, const at::Device& device) {
+  if (flag.is_cuda()) {
+    TORCH_CHECK(flag.device() == device, "dyq: act_bits_flag is on ", flag.device(), " but x is on ", device);
+    return flag.const_data_ptr<int32_t>();
+  }
+  TORCH_CHECK(flag.is_cpu() && flag.is_pinned(),
+              "dyq: for CUDA inputs act_bits_flag must live in pinned host memory (torch.empty(1, dtype=torch.int32, "
+              "pin_memory=True), as dyq.PrecisionFlag allocates it) or on the GPU; a pageable CPU tensor cannot be "
+              "read by the kernel");
+  void* device_ptr = nullptr;
+  const cudaError_t err = cudaHostGetDevicePointer(&device_ptr, const_cast<void*>(flag.const_data_ptr()), 0);
+  TORCH_CHECK(err == cudaSuccess, "dyq: act_bits_flag is pinned but not mapped into the device address space: ",
+              cudaGetErrorString(err));
+  return static_cast<const int32_t*>(device_ptr);
+}
+
+at::Tensor gemm_with_flag_cuda(const at::Tensor& x, const at::Tensor& qweight, const at::Tensor& scales,
+                               int64_t group_size, const at::Tensor& act_bits_flag,
+                               const std::optional<at::Tensor>& bias) {
+  check_gemm_args(x, qweight, scales, group_size, bias);
+  check_flag_tensor(act_bits_flag);
+  check_on_cuda(x, "x");
+  // The value is not read here: the kernels read it when they run (a NaN output marks an invalid one).
+  const c10::cuda::CUDAGuard guard(x.device());
+  return gemm_cuda_impl(x, qweight, scales, group_size,
+                        cuda::flag_precision(device_visible_flag(act_bits_flag, x.device())), bias);
+}
+
+}  // namespace
+}  // namespace dyq
+
+TORCH_LIBRARY_IMPL(dyq, CUDA, m) {
+  m.impl("quantize_weight", &dyq::quantize_weight_cuda);
+  m.impl("dequantize_weight", &dyq::dequantize_weight_cuda);
+  m.impl("quantize_activations", &dyq::quantize_activations_cuda);
+  m.impl("gemm", &dyq::gemm_cuda);
+  m.impl("gemm_with_flag", &dyq::gemm_with_flag_cuda);
+}
