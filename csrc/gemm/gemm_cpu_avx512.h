@@ -177,6 +177,16 @@ std::vector<float> deinterleave_activations(const Element* x, int64_t m, int64_t
   return deinterleaved;
 }
 
+// Splits 64 packed weight bytes into the s8 codes of their low nibbles (even columns) and high nibbles
+// (odd columns), sign-extending with a 16-entry byte lookup.
+inline void split_weight_nibbles(__m512i packed, __m512i& even, __m512i& odd) {
+  const __m512i low_nibbles = _mm512_set1_epi8(0x0F);
+  const __m512i nibble_values =
+      _mm512_broadcast_i32x4(_mm_setr_epi8(0, 1, 2, 3, 4, 5, 6, 7, -8, -7, -6, -5, -4, -3, -2, -1));
+  even = _mm512_shuffle_epi8(nibble_values, _mm512_and_si512(packed, low_nibbles));
+  odd = _mm512_shuffle_epi8(nibble_values, _mm512_and_si512(_mm512_srli_epi16(packed, 4), low_nibbles));
+}
+
 // sums[r] = y[r] (without bias) for one weight row and kRows quantized activation rows.
 template <int kRows>
 void quantized_row_kernel(const uint8_t* weight_row, const float* scales_row, int64_t k, int group_size,
@@ -184,12 +194,11 @@ void quantized_row_kernel(const uint8_t* weight_row, const float* scales_row, in
   const int64_t full_blocks = k / kBlockColumns;
   const int64_t tail_columns = k % kBlockColumns;
   const int64_t groups_per_block = kBlockColumns / group_size;
-  const __m512i low_nibbles = _mm512_set1_epi8(0x0F);
-  const __m512i sign_extend = _mm512_broadcast_i32x4(_mm_setr_epi8(0, 1, 2, 3, 4, 5, 6, 7, -8, -7, -6, -5, -4, -3, -2, -1));
   const __m512i ones = _mm512_set1_epi8(1);
   // Lane i covers columns 8i..8i+7 of the block: group i * 8 / group_size of it.
-  const __m512i lane_group = _mm512_srli_epi32(_mm512_slli_epi32(_mm512_set_epi32(15, 14, 13, 12, 11, 10, 9, 8, 7, 6, 5, 4, 3, 2, 1, 0), 3),
-                                               __builtin_ctz(group_size));
+  const __m512i lane_group = _mm512_srli_epi32(
+      _mm512_slli_epi32(_mm512_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15), 3),
+      __builtin_ctz(group_size));
   __m512 acc[kRows];
   for (int r = 0; r < kRows; ++r) acc[r] = _mm512_setzero_ps();
   const int64_t blocks = full_blocks + (tail_columns != 0);
@@ -197,9 +206,8 @@ void quantized_row_kernel(const uint8_t* weight_row, const float* scales_row, in
     const bool full = t < full_blocks;
     const __mmask64 byte_mask = full ? ~__mmask64{0} : (__mmask64{1} << (tail_columns / 2)) - 1;
     const __mmask16 scale_mask = full ? (1u << groups_per_block) - 1 : (1u << (tail_columns / group_size)) - 1;
-    const __m512i packed = _mm512_maskz_loadu_epi8(byte_mask, weight_row + t * (kBlockColumns / 2));
-    const __m512i even = _mm512_shuffle_epi8(sign_extend, _mm512_and_si512(packed, low_nibbles));
-    const __m512i odd = _mm512_shuffle_epi8(sign_extend, _mm512_and_si512(_mm512_srli_epi16(packed, 4), low_nibbles));
+    __m512i even, odd;
+    split_weight_nibbles(_mm512_maskz_loadu_epi8(byte_mask, weight_row + t * (kBlockColumns / 2)), even, odd);
     const __m512 weight_sums = _mm512_cvtepi32_ps(
         _mm512_dpbusd_epi32(_mm512_dpbusd_epi32(_mm512_setzero_si512(), ones, even), ones, odd));
     const __m512 weight_scales = _mm512_permutexvar_ps(
@@ -292,8 +300,6 @@ constexpr int64_t kPanelDepth = 512;  // a multiple of 128, hence of every group
 
 // Weight row segment -> one s8 code per column (columns a multiple of 32).
 inline void unpack_weight_codes(const uint8_t* packed, int64_t columns, int8_t* codes) {
-  const __m512i low_nibbles = _mm512_set1_epi8(0x0F);
-  const __m512i sign_extend = _mm512_broadcast_i32x4(_mm_setr_epi8(0, 1, 2, 3, 4, 5, 6, 7, -8, -7, -6, -5, -4, -3, -2, -1));
   alignas(64) uint8_t first_indices[64], second_indices[64];
   for (int i = 0; i < 32; ++i) {
     first_indices[2 * i] = static_cast<uint8_t>(i);  // low nibble of byte i: column 2i
@@ -305,12 +311,12 @@ inline void unpack_weight_codes(const uint8_t* packed, int64_t columns, int8_t* 
   auto prefix_mask = [](int64_t count) { return count >= 64 ? ~__mmask64{0} : (__mmask64{1} << count) - 1; };
   for (int64_t c = 0; c < columns; c += kBlockColumns) {
     const int64_t count = std::min(kBlockColumns, columns - c);
-    const __m512i bytes = _mm512_maskz_loadu_epi8(prefix_mask(count / 2), packed + c / 2);
-    const __m512i even = _mm512_shuffle_epi8(sign_extend, _mm512_and_si512(bytes, low_nibbles));
-    const __m512i odd = _mm512_shuffle_epi8(sign_extend, _mm512_and_si512(_mm512_srli_epi16(bytes, 4), low_nibbles));
+    __m512i even, odd;
+    split_weight_nibbles(_mm512_maskz_loadu_epi8(prefix_mask(count / 2), packed + c / 2), even, odd);
     _mm512_mask_storeu_epi8(codes + c, prefix_mask(count), _mm512_permutex2var_epi8(even, first_order, odd));
     if (count > 64) {
-      _mm512_mask_storeu_epi8(codes + c + 64, prefix_mask(count - 64), _mm512_permutex2var_epi8(even, second_order, odd));
+      _mm512_mask_storeu_epi8(codes + c + 64, prefix_mask(count - 64),
+                              _mm512_permutex2var_epi8(even, second_order, odd));
     }
   }
 }
@@ -365,7 +371,9 @@ struct WeightPanel {
           }
         }
       }
-      for (int h = 0; h < 2; ++h) _mm512_storeu_ps(&weight_sums[g * kPanelColumns + 16 * h], _mm512_cvtepi32_ps(sums[h]));
+      for (int h = 0; h < 2; ++h) {
+        _mm512_storeu_ps(&weight_sums[g * kPanelColumns + 16 * h], _mm512_cvtepi32_ps(sums[h]));
+      }
     }
   }
 };
@@ -378,7 +386,8 @@ struct PanelActivations {
 };
 
 template <typename Element>
-PanelActivations<true> quantize_panel_activations(const Element* x, int64_t m, int64_t k, int group_size, int act_bits) {
+PanelActivations<true> quantize_panel_activations(const Element* x, int64_t m, int64_t k, int group_size,
+                                                  int act_bits) {
   const int64_t groups = k / group_size;
   PanelActivations<true> a{std::vector<uint8_t>(m * k), std::vector<float>(m * groups), std::vector<float>(m * groups)};
   parallel_for(0, m, 4, [&](int64_t row_begin, int64_t row_end) {
@@ -464,8 +473,8 @@ void panel_kernel(const WeightPanel<kQuantized>& panel, const PanelActivations<k
           const __m512 partial =
               _mm512_fnmadd_ps(weight_sums, _mm512_set1_ps(activations.zeros[at]), _mm512_cvtepi32_ps(acc[r][h]));
           float* total = totals + r * kPanelColumns + 16 * h;
-          _mm512_storeu_ps(total, _mm512_fmadd_ps(partial, _mm512_mul_ps(weight_scales, _mm512_set1_ps(activations.scales[at])),
-                                                  _mm512_loadu_ps(total)));
+          const __m512 scale = _mm512_mul_ps(weight_scales, _mm512_set1_ps(activations.scales[at]));
+          _mm512_storeu_ps(total, _mm512_fmadd_ps(partial, scale, _mm512_loadu_ps(total)));
         }
       } else {
         for (int r = 0; r < kRows; ++r) {
@@ -491,9 +500,10 @@ void run_panels(const PanelActivations<kQuantized>& activations, const uint8_t* 
         const int64_t depth = std::min(kPanelDepth, k - col);
         panel.pack(qweight, scales, n, k, group_size, weight_row, col, depth);
         for (int64_t row = 0; row < m; row += kPanelTileRows) {
-          dispatch_tile_rows<kPanelTileRows>(static_cast<int>(std::min<int64_t>(kPanelTileRows, m - row)), [&](auto rows) {
-            panel_kernel<kQuantized, decltype(rows)::value>(panel, activations, k, group_size, row, col, depth,
-                                                            totals.data() + row * kPanelColumns);
+          const int rows = static_cast<int>(std::min<int64_t>(kPanelTileRows, m - row));
+          dispatch_tile_rows<kPanelTileRows>(rows, [&](auto tile_rows) {
+            panel_kernel<kQuantized, decltype(tile_rows)::value>(panel, activations, k, group_size, row, col, depth,
+                                                                 totals.data() + row * kPanelColumns);
           });
         }
       }
