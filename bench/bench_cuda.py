@@ -1,0 +1,176 @@
+"""Time dyq's CUDA GEMM paths against cuBLAS bf16 and torch's INT4 weight-only kernel.
+
+    python bench/bench_cuda.py [--quick] [--out bench/results]
+
+For every (N, K) of the Llama-2-7B linear layers and every M, times `torch.ops.dyq.gemm` at 2, 4, 8
+and 16 activation bits, `torch.matmul` in bf16 (cuBLAS) and `torch._weight_int4pack_mm` (where this
+torch has it) with CUDA events: warm-up, then the median of repeated runs, each run on one of several
+weight copies in rotation so that M = 1 measures DRAM, not L2. Reports, at M = 1, the achieved
+bandwidth (bytes of weights + scales + activations + output over time) as a percentage of a measured
+device-to-device copy, and at M = 512 the rate in TOPS. Prints a table and writes
+bench/results/cuda_<device>.json with the device, driver, versions, shapes and medians.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import re
+import statistics
+import subprocess
+import sys
+from pathlib import Path
+
+import torch
+
+SHAPES = ((4096, 4096), (12288, 4096), (22016, 4096), (4096, 11008))  # (N, K): qkv/o, fused qkv, gate+up, down
+ROWS = (1, 4, 16, 64, 256, 512)
+ACT_BITS = (2, 4, 8, 16)
+GROUP_SIZE = 128
+
+
+def time_ms(fn, warmup: int, repeats: int) -> float:
+    """Median milliseconds of `fn` over `repeats` runs, each bracketed by CUDA events."""
+    for _ in range(warmup):
+        fn()
+    times = []
+    for _ in range(repeats):
+        start, end = torch.cuda.Event(enable_timing=True), torch.cuda.Event(enable_timing=True)
+        start.record()
+        fn()
+        end.record()
+        end.synchronize()
+        times.append(start.elapsed_time(end))
+    return statistics.median(times)
+
+
+def copy_bandwidth_gbs(warmup: int, repeats: int) -> float:
+    """Device-to-device copy of 1 GiB, counting bytes read plus bytes written."""
+    src = torch.empty(1 << 30, dtype=torch.uint8, device="cuda")
+    dst = torch.empty_like(src)
+    ms = time_ms(lambda: dst.copy_(src), warmup, repeats)
+    return 2 * src.numel() / ms / 1e6
+
+
+def rotation_count(weight_bytes: int) -> int:
+    """Enough weight copies to exceed L2 several times over."""
+    l2 = torch.cuda.get_device_properties(0).L2_cache_size
+    return max(2, min(16, 4 * l2 // max(weight_bytes, 1) + 1))
+
+
+class Rotating:
+    """Calls fn(i) for i cycling over the copies, so consecutive runs touch different weights."""
+
+    def __init__(self, fn, copies: int):
+        self.fn, self.copies, self.i = fn, copies, 0
+
+    def __call__(self):
+        self.fn(self.i)
+        self.i = (self.i + 1) % self.copies
+
+
+def int4pack_available() -> bool:
+    return hasattr(torch, "_weight_int4pack_mm") and hasattr(torch.ops.aten, "_convert_weight_to_int4pack")
+
+
+def torch_int4_layer(w_bf16: torch.Tensor):
+    """torch's tinygemm layout: uint8 [N, K/2] codes in 0..15 (asymmetric, group scale and zero)."""
+    n, k = w_bf16.shape
+    wg = w_bf16.float().reshape(n, k // GROUP_SIZE, GROUP_SIZE)
+    lo, hi = wg.amin(-1), wg.amax(-1)
+    scale = ((hi - lo) / 15).clamp(min=1e-6)
+    codes = torch.round((wg - lo.unsqueeze(-1)) / scale.unsqueeze(-1)).clamp(0, 15).to(torch.int32).reshape(n, k)
+    packed = (codes[:, ::2] << 4 | codes[:, 1::2]).to(torch.uint8)
+    weight = torch.ops.aten._convert_weight_to_int4pack(packed, 8)
+    zero = lo + 8 * scale  # tinygemm dequantizes (q - 8) * scale + zero
+    scales_and_zeros = torch.stack([scale, zero], dim=-1).transpose(0, 1).contiguous().to(torch.bfloat16)
+    return weight, scales_and_zeros
+
+
+def device_info() -> dict:
+    props = torch.cuda.get_device_properties(0)
+    driver = ""
+    try:
+        driver = subprocess.run(["nvidia-smi", "--query-gpu=driver_version", "--format=csv,noheader"],
+                                capture_output=True, text=True, check=False).stdout.strip().splitlines()[0]
+    except (OSError, IndexError):
+        pass
+    return {"device": props.name, "capability": f"{props.major}.{props.minor}", "sms": props.multi_processor_count,
+            "l2_bytes": props.L2_cache_size, "driver": driver, "torch": torch.__version__, "cuda": torch.version.cuda}
+
+
+def bench_shape(n: int, k: int, rows, warmup: int, repeats: int, copy_gbs: float, results: list, table: list):
+    w = (torch.randn(n, k, device="cuda") * 0.02).to(torch.bfloat16)
+    qweight, scales = torch.ops.dyq.quantize_weight(w, GROUP_SIZE)
+    copies = rotation_count(qweight.numel() + scales.numel() * 4)
+    dyq_layers = [(qweight.clone(), scales.clone()) for _ in range(copies)]
+    bf16_layers = [w.clone() for _ in range(rotation_count(w.numel() * 2))]
+    int4_layers = []
+    if int4pack_available():
+        try:
+            int4_layers = [torch_int4_layer(w) for _ in range(copies)]
+        except RuntimeError as err:  # layout requirements differ between torch versions
+            print(f"  torch INT4 weight-only kernel unavailable here: {err}")
+    for m in rows:
+        x = torch.randn(m, k, device="cuda").to(torch.bfloat16)
+        entry = {"n": n, "k": k, "m": m, "group_size": GROUP_SIZE, "ms": {}}
+        for bits in ACT_BITS:
+            fn = Rotating(lambda i, b=bits: torch.ops.dyq.gemm(x, *dyq_layers[i], GROUP_SIZE, b), copies)
+            entry["ms"][f"dyq_a{bits}"] = time_ms(fn, warmup, repeats)
+        fn = Rotating(lambda i: torch.matmul(x, bf16_layers[i].t()), len(bf16_layers))
+        entry["ms"]["cublas_bf16"] = time_ms(fn, warmup, repeats)
+        if int4_layers:
+            fn = Rotating(lambda i: torch._weight_int4pack_mm(x, int4_layers[i][0], GROUP_SIZE, int4_layers[i][1]),
+                          copies)
+            entry["ms"]["torch_int4_weight_only"] = time_ms(fn, warmup, repeats)
+        dyq_bytes = qweight.numel() + scales.numel() * 4 + x.numel() * 2 + m * n * 2
+        if m == 1:
+            entry["dyq_bandwidth_pct_of_copy"] = {
+                key: dyq_bytes / ms / 1e6 / copy_gbs * 100 for key, ms in entry["ms"].items() if key.startswith("dyq")}
+        entry["tops"] = {key: 2 * m * n * k / ms / 1e9 for key, ms in entry["ms"].items()}
+        results.append(entry)
+        row = [f"{n}x{k}", str(m)] + [f"{entry['ms'].get(c, float('nan')) * 1e3:9.1f}" for c in COLUMNS]
+        if m == 1:
+            row.append(f"{entry['dyq_bandwidth_pct_of_copy']['dyq_a4']:5.1f}% BW (a4)")
+        elif m == 512:
+            row.append(f"{entry['tops']['dyq_a8']:6.1f} TOPS (a8)")
+        table.append(row)
+        print("  ".join(row), flush=True)
+
+
+COLUMNS = ("dyq_a2", "dyq_a4", "dyq_a8", "dyq_a16", "cublas_bf16", "torch_int4_weight_only")
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--quick", action="store_true", help="first shape only, fewer repeats")
+    parser.add_argument("--out", type=Path, default=Path(__file__).resolve().parent / "results")
+    args = parser.parse_args()
+    if not torch.cuda.is_available():
+        print("bench_cuda: no CUDA device; nothing to time.")
+        return 0
+    import dyq  # noqa: F401  (registers torch.ops.dyq)
+
+    warmup, repeats = (5, 20) if args.quick else (20, 100)
+    info = device_info()
+    copy_gbs = copy_bandwidth_gbs(warmup, repeats)
+    print(f"{info['device']} (sm_{info['capability'].replace('.', '')}), driver {info['driver']}, "
+          f"torch {info['torch']}, CUDA {info['cuda']}; device-to-device copy {copy_gbs:.0f} GB/s")
+    print("times in microseconds (median)")
+    header = ["N x K", "M"] + [f"{c:>9}" for c in COLUMNS]
+    print("  ".join(header))
+    results, table = [], []
+    shapes = SHAPES[:1] if args.quick else SHAPES
+    for n, k in shapes:
+        bench_shape(n, k, ROWS, warmup, repeats, copy_gbs, results, table)
+    args.out.mkdir(parents=True, exist_ok=True)
+    name = re.sub(r"[^A-Za-z0-9]+", "_", info["device"]).strip("_").lower()
+    path = args.out / f"cuda_{name}.json"
+    path.write_text(json.dumps({**info, "copy_gbs": copy_gbs, "warmup": warmup, "repeats": repeats,
+                                "group_size": GROUP_SIZE, "shapes": [list(s) for s in shapes], "rows": list(ROWS),
+                                "results": results}, indent=2))
+    print(f"wrote {path}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
