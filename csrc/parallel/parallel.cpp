@@ -1,8 +1,10 @@
-// Default std::thread backend of dyq::parallel_for, replaceable by the host (docs: parallel.h).
+// dyq::parallel_for: a persistent worker pool by default, replaceable by the host (parallel.h).
 #include "parallel/parallel.h"
 
 #include <algorithm>
 #include <atomic>
+#include <condition_variable>
+#include <mutex>
 #include <thread>
 #include <vector>
 
@@ -10,33 +12,108 @@ namespace dyq {
 namespace {
 
 std::atomic<ParallelForBackend> g_backend{nullptr};
+std::atomic<ThreadCountSource> g_thread_count{nullptr};
 
 // A body that calls parallel_for again runs its inner range inline instead of oversubscribing.
 thread_local bool t_inside_parallel_region = false;
 
-void thread_parallel_for(int64_t begin, int64_t end, int64_t grain_size, const RangeBody& body) {
+int hardware_threads() { return std::max(1, static_cast<int>(std::thread::hardware_concurrency())); }
+
+// Workers started once and woken per call: a decode-sized GEMM takes a fraction of a millisecond, so
+// starting threads for every call would cost a noticeable share of it.
+class WorkerPool {
+ public:
+  explicit WorkerPool(int workers) {
+    for (int i = 0; i < workers; ++i) threads_.emplace_back([this] { serve(); });
+  }
+
+  ~WorkerPool() {
+    {
+      std::lock_guard<std::mutex> lock(mutex_);
+      stopping_ = true;
+    }
+    wake_.notify_all();
+    for (auto& thread : threads_) thread.join();
+  }
+
+  int size() const { return static_cast<int>(threads_.size()); }
+
+  // Runs task(c) once for every c in [0, chunks); the caller works too and returns when all are done.
+  void run(int64_t chunks, const std::function<void(int64_t)>& task) {
+    std::lock_guard<std::mutex> one_job_at_a_time(run_mutex_);
+    Job job{&task, chunks};
+    {
+      std::lock_guard<std::mutex> lock(mutex_);
+      job_ = &job;
+      ++generation_;
+    }
+    wake_.notify_all();
+    drain(job);
+    std::unique_lock<std::mutex> lock(mutex_);
+    job_ = nullptr;  // late workers no longer join; wait for those that did
+    done_.wait(lock, [&] { return job.active == 0; });
+  }
+
+ private:
+  struct Job {
+    const std::function<void(int64_t)>* task;
+    int64_t chunks;
+    std::atomic<int64_t> next{0};
+    int active = 0;  // workers inside drain(); guarded by mutex_
+  };
+
+  static void drain(Job& job) {
+    t_inside_parallel_region = true;
+    for (int64_t c; (c = job.next.fetch_add(1, std::memory_order_relaxed)) < job.chunks;) (*job.task)(c);
+    t_inside_parallel_region = false;
+  }
+
+  void serve() {
+    uint64_t seen = 0;
+    std::unique_lock<std::mutex> lock(mutex_);
+    for (;;) {
+      wake_.wait(lock, [&] { return stopping_ || (job_ != nullptr && generation_ != seen); });
+      if (stopping_) return;
+      seen = generation_;
+      Job* job = job_;
+      ++job->active;
+      lock.unlock();
+      drain(*job);
+      lock.lock();
+      if (--job->active == 0) done_.notify_all();
+    }
+  }
+
+  std::vector<std::thread> threads_;
+  std::mutex run_mutex_;
+  std::mutex mutex_;
+  std::condition_variable wake_;
+  std::condition_variable done_;
+  Job* job_ = nullptr;
+  uint64_t generation_ = 0;
+  bool stopping_ = false;
+};
+
+WorkerPool& pool() {
+  static WorkerPool instance(hardware_threads() - 1);
+  return instance;
+}
+
+void pool_parallel_for(int64_t begin, int64_t end, int64_t grain_size, const RangeBody& body) {
   const int64_t range = end - begin;
   const int64_t grain = std::max<int64_t>(grain_size, 1);
-  const int64_t threads = std::max<int64_t>(std::thread::hardware_concurrency(), 1);
-  const int64_t chunks = std::min(threads, range / grain);
+  const ThreadCountSource source = g_thread_count.load(std::memory_order_acquire);
+  const int64_t threads = std::max(1, source != nullptr ? source() : hardware_threads());
+  const int64_t chunks = std::min({threads, range / grain, static_cast<int64_t>(pool().size()) + 1});
   if (chunks <= 1 || t_inside_parallel_region) {
     body(begin, end);
     return;
   }
-  // Contiguous chunks of nearly equal size, each at least `grain` long; the caller runs the first.
+  // Contiguous chunks of nearly equal size, each at least `grain` long.
   const int64_t base = range / chunks;
   const int64_t extra = range % chunks;
   auto chunk_begin = [&](int64_t c) { return begin + c * base + std::min(c, extra); };
-  auto run_chunk = [&](int64_t c) {
-    t_inside_parallel_region = true;
-    body(chunk_begin(c), chunk_begin(c + 1));
-    t_inside_parallel_region = false;
-  };
-  std::vector<std::thread> workers;
-  workers.reserve(chunks - 1);
-  for (int64_t c = 1; c < chunks; ++c) workers.emplace_back(run_chunk, c);
-  run_chunk(0);
-  for (auto& worker : workers) worker.join();
+  pool().run(chunks, [&](int64_t c) { body(chunk_begin(c), chunk_begin(c + 1)); });
 }
 
 }  // namespace
@@ -47,10 +124,12 @@ void parallel_for(int64_t begin, int64_t end, int64_t grain_size, const RangeBod
   if (backend != nullptr) {
     backend(begin, end, grain_size, body);
   } else {
-    thread_parallel_for(begin, end, grain_size, body);
+    pool_parallel_for(begin, end, grain_size, body);
   }
 }
 
 void set_parallel_backend(ParallelForBackend backend) { g_backend.store(backend, std::memory_order_release); }
+
+void set_thread_count_source(ThreadCountSource source) { g_thread_count.store(source, std::memory_order_release); }
 
 }  // namespace dyq

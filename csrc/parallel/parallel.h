@@ -1,8 +1,10 @@
 // A parallel-for that the kernels use, and that their host (torch, or a test) may replace.
 //
-// The kernels stay free of torch and of any OpenMP runtime: by default the work is split across
-// std::threads; the torch extension installs at::parallel_for at load time so that dyq shares torch's
-// thread pool and honours torch.set_num_threads.
+// The kernels stay free of torch and of any OpenMP runtime: by default the work is split across a
+// persistent pool of std::threads (one per hardware thread). The torch extension sets the thread count
+// source to at::get_num_threads, so that dyq honours torch.set_num_threads. (at::parallel_for itself is
+// a header template whose OpenMP pragmas would compile to a serial loop in a library built without
+// -fopenmp, and linking a second OpenMP runtime beside torch's is worse.)
 #pragma once
 
 #include <cstdint>
@@ -16,7 +18,11 @@ using ParallelForBackend = void (*)(int64_t begin, int64_t end, int64_t grain_si
 // Runs body over [begin, end) in chunks of at least grain_size, possibly in parallel.
 void parallel_for(int64_t begin, int64_t end, int64_t grain_size, const RangeBody& body);
 
-// nullptr restores the default std::thread backend.
+// Replaces the default pool (for tests and embedders); nullptr restores it.
 void set_parallel_backend(ParallelForBackend backend);
+
+// How many threads the default pool may use per call; nullptr means one per hardware thread.
+using ThreadCountSource = int (*)();
+void set_thread_count_source(ThreadCountSource source);
 
 }  // namespace dyq

@@ -13,13 +13,11 @@
 namespace dyq {
 namespace {
 
-void torch_parallel_for(int64_t begin, int64_t end, int64_t grain_size, const RangeBody& body) {
-  at::parallel_for(begin, end, grain_size, body);
-}
+int torch_thread_count() { return at::get_num_threads(); }
 
-// dyq's kernels run on torch's intra-op thread pool (and so honour torch.set_num_threads).
-[[maybe_unused]] const bool kParallelBackendInstalled = [] {
-  set_parallel_backend(&torch_parallel_for);
+// dyq's kernels use as many threads as torch's intra-op pool (torch.set_num_threads).
+[[maybe_unused]] const bool kThreadCountInstalled = [] {
+  set_thread_count_source(&torch_thread_count);
   return true;
 }();
 

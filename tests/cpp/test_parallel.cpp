@@ -90,3 +90,30 @@ TEST(ParallelFor, SmallRangeRunsInlineOnTheCallingThread) {
 }
 
 }  // namespace
+
+namespace {
+int one_thread() { return 1; }
+int three_threads() { return 3; }
+}  // namespace
+
+TEST(ParallelForPool, ThreadCountSourceLimitsTheChunks) {
+  dyq::set_parallel_backend(nullptr);
+  dyq::set_thread_count_source(one_thread);
+  std::atomic<int> calls{0};
+  dyq::parallel_for(0, 1000, 1, [&](int64_t, int64_t) { ++calls; });
+  EXPECT_EQ(calls.load(), 1);
+  dyq::set_thread_count_source(three_threads);
+  for (int repeat = 0; repeat < 200; ++repeat) run_and_check(0, 997, 1, true);
+  dyq::set_thread_count_source(nullptr);
+}
+
+TEST(ParallelForPool, ConcurrentCallersEachCoverTheirRange) {
+  dyq::set_parallel_backend(nullptr);
+  std::vector<std::thread> callers;
+  for (int caller = 0; caller < 4; ++caller) {
+    callers.emplace_back([] {
+      for (int repeat = 0; repeat < 100; ++repeat) run_and_check(0, 513, 7, true);
+    });
+  }
+  for (auto& caller : callers) caller.join();
+}
