@@ -3,9 +3,13 @@
 #pragma once
 
 #include <ATen/core/Tensor.h>
+#include <ATen/ops/empty.h>
 #include <c10/util/Exception.h>
 
 #include <optional>
+#include <tuple>
+#include <utility>
+#include <vector>
 
 #include "common/format.h"
 
@@ -83,6 +87,33 @@ inline void check_flag_tensor(const at::Tensor& flag) {
   TORCH_CHECK(flag.scalar_type() == at::kInt, "dyq: act_bits_flag must be an int32 tensor, got ",
               flag.scalar_type());
   TORCH_CHECK(flag.numel() == 1, "dyq: act_bits_flag must hold exactly one element, got ", flag.numel());
+}
+
+// Checks quantize_weight's arguments; returns (N, K).
+inline std::pair<int64_t, int64_t> check_quantize_weight_args(const at::Tensor& weight, int64_t group_size) {
+  check_group_size(group_size);
+  TORCH_CHECK(weight.is_floating_point(), "dyq: weight must be a floating-point tensor, got ", weight.scalar_type());
+  TORCH_CHECK(weight.dim() == 2, "dyq: weight must have shape [N, K], got ", weight.sizes());
+  check_k_divisible(weight.size(1), group_size, "weight");
+  return {weight.size(0), weight.size(1)};
+}
+
+// Checks quantize_activations' arguments and allocates its outputs on x's device:
+// packed codes uint8 [..., K*b/8], scales fp32 [..., K/G], zero points uint8 [..., K/G].
+inline std::tuple<at::Tensor, at::Tensor, at::Tensor> activation_quantization_outputs(const at::Tensor& x,
+                                                                                      int64_t group_size,
+                                                                                      int64_t act_bits) {
+  check_group_size(group_size);
+  check_act_bits(act_bits, /*allow_fallback=*/false);
+  check_activation(x, "x");
+  const int64_t k = x.size(-1);
+  check_k_divisible(k, group_size, "x");
+  std::vector<int64_t> packed_shape(x.sizes().begin(), x.sizes().end());
+  std::vector<int64_t> group_shape = packed_shape;
+  packed_shape.back() = packed_activation_bytes(k, static_cast<int>(act_bits));
+  group_shape.back() = k / group_size;
+  return {at::empty(packed_shape, x.options().dtype(at::kByte)), at::empty(group_shape, x.options().dtype(at::kFloat)),
+          at::empty(group_shape, x.options().dtype(at::kByte))};
 }
 
 // Output shape: x's leading dimensions, then N.

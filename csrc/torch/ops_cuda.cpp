@@ -32,11 +32,7 @@ void check_on_cuda(const at::Tensor& x, const char* name) {
 }
 
 std::tuple<at::Tensor, at::Tensor> quantize_weight_cuda(const at::Tensor& weight, int64_t group_size) {
-  check_group_size(group_size);
-  TORCH_CHECK(weight.is_floating_point(), "dyq: weight must be a floating-point tensor, got ", weight.scalar_type());
-  TORCH_CHECK(weight.dim() == 2, "dyq: weight must have shape [N, K], got ", weight.sizes());
-  const int64_t n = weight.size(0), k = weight.size(1);
-  check_k_divisible(k, group_size, "weight");
+  const auto [n, k] = check_quantize_weight_args(weight, group_size);
   const c10::cuda::CUDAGuard guard(weight.device());
   const at::Tensor w = weight.to(at::kFloat).contiguous();
   at::Tensor qweight = at::empty({n, k / 2}, weight.options().dtype(at::kByte));
@@ -65,21 +61,11 @@ at::Tensor dequantize_weight_cuda(const at::Tensor& qweight, const at::Tensor& s
 
 std::tuple<at::Tensor, at::Tensor, at::Tensor> quantize_activations_cuda(const at::Tensor& x, int64_t group_size,
                                                                          int64_t act_bits) {
-  check_group_size(group_size);
-  check_act_bits(act_bits, /*allow_fallback=*/false);
-  check_activation(x, "x");
-  const int64_t k = x.size(-1);
-  check_k_divisible(k, group_size, "x");
+  auto [packed, scales, zeros] = activation_quantization_outputs(x, group_size, act_bits);
   const c10::cuda::CUDAGuard guard(x.device());
+  const int64_t k = x.size(-1);
   const at::Tensor xc = aligned_contiguous(x);
   const int64_t m = k == 0 ? 0 : xc.numel() / k;
-  std::vector<int64_t> packed_shape(x.sizes().begin(), x.sizes().end());
-  std::vector<int64_t> group_shape = packed_shape;
-  packed_shape.back() = packed_activation_bytes(k, static_cast<int>(act_bits));
-  group_shape.back() = k / group_size;
-  at::Tensor packed = at::empty(packed_shape, x.options().dtype(at::kByte));
-  at::Tensor scales = at::empty(group_shape, x.options().dtype(at::kFloat));
-  at::Tensor zeros = at::empty(group_shape, x.options().dtype(at::kByte));
   check_launch(cuda::quantize_activations(xc.const_data_ptr(), to_dyq_dtype(x.scalar_type()), m, k,
                                           static_cast<int>(group_size), static_cast<int>(act_bits),
                                           packed.mutable_data_ptr<uint8_t>(), scales.mutable_data_ptr<float>(),

@@ -120,7 +120,11 @@ def quantize_model(model: nn.Module, group_size: int = 128, skip: Iterable[SkipP
 
 
 def dyq_layers(model: nn.Module) -> list[DyQLinear]:
-    return [m for m in model.modules() if isinstance(m, DyQLinear)]
+    """The DyQLinear layers of ``model``; an error if there are none (a forgotten quantize_model)."""
+    layers = [m for m in model.modules() if isinstance(m, DyQLinear)]
+    if not layers:
+        raise ValueError(f"{type(model).__name__} contains no DyQLinear layer; run dyq.quantize_model first")
+    return layers
 
 
 def set_precision(module_or_model: nn.Module, bits: int) -> int:
@@ -130,8 +134,6 @@ def set_precision(module_or_model: nn.Module, bits: int) -> int:
     """
     bits = _check_bits(bits, "bits")
     layers = dyq_layers(module_or_model)
-    if not layers:
-        raise ValueError(f"{type(module_or_model).__name__} contains no DyQLinear layer; run dyq.quantize_model first")
     for layer in layers:
         layer.set_precision(bits)
     return len(layers)
@@ -140,8 +142,6 @@ def set_precision(module_or_model: nn.Module, bits: int) -> int:
 def bind_flag(module_or_model: nn.Module, flag: PrecisionFlag | None) -> int:
     """Make every DyQLinear read its bit-width from ``flag`` (``None`` unbinds); returns how many layers."""
     layers = dyq_layers(module_or_model)
-    if not layers:
-        raise ValueError(f"{type(module_or_model).__name__} contains no DyQLinear layer; run dyq.quantize_model first")
     for layer in layers:
         layer.bind_flag(flag)
     return len(layers)
