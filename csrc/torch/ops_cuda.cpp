@@ -81,7 +81,9 @@ at::Tensor gemm_cuda_impl(const at::Tensor& x, const at::Tensor& qweight, const 
   at::Tensor out = at::empty(gemm_output_shape(x, n), x.options());
   const at::Tensor xc = aligned_contiguous(x);
   const at::Tensor qweight_c = aligned_contiguous(qweight);
-  const int64_t m = k == 0 ? 0 : xc.numel() / k;
+  // Rows from the leading dimensions, not numel / k: with K = 0 (no groups) the output is [..., M, N] of
+  // zeros (+ bias), and the kernels write it; returning early would leave it uninitialized.
+  const int64_t m = out.numel() == 0 ? 0 : out.numel() / n;
   if (m == 0 || n == 0) return out;
   const at::Tensor bias_c = bias.has_value() ? bias->contiguous() : at::Tensor();
   // Scratch from the caching allocator: stream-ordered, and drawn from the graph's pool under capture.
