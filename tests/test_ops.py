@@ -192,3 +192,11 @@ def test_gemm_with_flag_compiles_once_for_every_flag_value(rng):
     for bits in (16, 2, 8, 4):
         flag.bits = bits
         assert torch.equal(compiled(x), dyq.ops.gemm(x, qweight, scales, 64, bits) * 2)
+
+
+@pytest.mark.parametrize("act_bits", ACT_BITS)
+def test_gemm_with_no_input_features_is_the_bias(act_bits, rng):
+    qweight, scales = dyq.ops.quantize_weight(torch.empty(6, 0), 32)
+    bias = torch.randn(6, generator=rng)
+    assert torch.equal(dyq.ops.gemm(torch.randn(3, 0), qweight, scales, 32, act_bits, bias), bias.expand(3, 6))
+    assert torch.equal(dyq.ops.gemm(torch.randn(3, 0), qweight, scales, 32, act_bits), torch.zeros(3, 6))

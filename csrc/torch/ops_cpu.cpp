@@ -60,9 +60,12 @@ at::Tensor gemm_cpu_impl(const at::Tensor& x, const at::Tensor& qweight, const a
                          int64_t act_bits, const std::optional<at::Tensor>& bias) {
   const int64_t n = qweight.size(0), k = qweight.size(1) * 2;
   at::Tensor out = at::empty(gemm_output_shape(x, n), x.options());
-  const at::Tensor xc = x.contiguous();
-  const int64_t m = k == 0 ? 0 : xc.numel() / k;
+  const int64_t m = n == 0 ? 0 : out.numel() / n;
   if (m == 0 || n == 0) return out;
+  if (k == 0) {  // an empty sum: the bias alone
+    return bias.has_value() ? out.copy_(bias->expand_as(out)) : out.zero_();
+  }
+  const at::Tensor xc = x.contiguous();
   const at::Tensor bias_c = bias.has_value() ? bias->contiguous() : at::Tensor();
   cpu::gemm(xc.const_data_ptr(), to_dyq_dtype(x.scalar_type()), qweight.const_data_ptr<uint8_t>(),
             scales.const_data_ptr<float>(), bias_c.defined() ? bias_c.const_data_ptr() : nullptr, m, n, k,
