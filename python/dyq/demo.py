@@ -40,12 +40,14 @@ def build_policy(vocab_size: int = 32000, hidden_size: int = 256, layers: int = 
     return LlamaForCausalLM(config).eval()
 
 
-def decode_actions(model, prompt: torch.Tensor, past=None) -> torch.Tensor:
-    """Greedy decode of 7 action tokens, restricted to the action bins (OpenVLA's last 256 ids)."""
+def decode_actions(model, prompt: torch.Tensor, prefill_output=None) -> torch.Tensor:
+    """Greedy decode of 7 action tokens, restricted to the action bins (OpenVLA's last 256 ids).
+
+    ``prefill_output`` is the model's output on ``prompt`` when the caller already ran the prefill."""
     vocab = model.config.vocab_size
     tokens = []
     with torch.inference_mode():
-        out = model(prompt, past_key_values=past, use_cache=True) if past is None else past
+        out = model(prompt, use_cache=True) if prefill_output is None else prefill_output
         logits, cache = out.logits[:, -1], out.past_key_values
         for _ in range(ACTION_TOKENS):
             token = logits[:, vocab - ACTION_BINS:].argmax(dim=-1, keepdim=True) + vocab - ACTION_BINS
@@ -104,7 +106,7 @@ def run(steps: int = 80, prompt_tokens: int = 48, seed: int = 0, json_path: str 
                 with torch.inference_mode():
                     return policy(prompt, use_cache=True)
 
-            runtime.step(previous, prefill, lambda out: decode_actions(policy, prompt, past=out))
+            runtime.step(previous, prefill, lambda out: decode_actions(policy, prompt, prefill_output=out))
             step_ms[runtime.stats[-1].bits].append((time.perf_counter() - start) * 1e3)
             previous = trajectory[t]
         summary = runtime.summary()

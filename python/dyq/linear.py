@@ -5,15 +5,9 @@ import torch
 from torch import nn
 
 from . import ops
-from .flag import PrecisionFlag
+from .flag import PrecisionFlag, check_bits
 
 ACTIVATION_DTYPES = (torch.float32, torch.bfloat16, torch.float16)
-
-
-def _check_bits(bits: int, name: str = "act_bits") -> int:
-    if isinstance(bits, bool) or not isinstance(bits, int) or bits not in ops.ACT_BITS:
-        raise ValueError(f"{name} must be one of {ops.ACT_BITS} (16 = unquantized fallback), got {bits!r}")
-    return bits
 
 
 def _check_group_size(in_features: int, group_size: int) -> None:
@@ -45,7 +39,7 @@ class DyQLinear(nn.Module):
         self.in_features = in_features
         self.out_features = out_features
         self.group_size = group_size
-        self.act_bits = _check_bits(act_bits)
+        self.act_bits = check_bits(act_bits, "act_bits")
         self.flag = None
         if flag is not None:
             self.bind_flag(flag)
@@ -83,7 +77,7 @@ class DyQLinear(nn.Module):
 
     def set_precision(self, bits: int) -> None:
         """Set the activation bit-width: writes the bound flag if there is one, else ``act_bits``."""
-        bits = _check_bits(bits, "bits")
+        bits = check_bits(bits)
         if self.flag is not None:
             self.flag.bits = bits
         else:

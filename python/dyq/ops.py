@@ -9,9 +9,7 @@ from __future__ import annotations
 import torch
 
 from . import _C  # noqa: F401  (loads the library that registers the ops)
-
-GROUP_SIZES = (32, 64, 128)
-ACT_BITS = (2, 4, 8, 16)
+from .reference import ACT_BITS, GROUP_SIZES  # noqa: F401  (re-exported)
 
 
 def _check_fake_gemm(x: torch.Tensor, qweight: torch.Tensor, scales: torch.Tensor, group_size: int) -> None:

@@ -9,8 +9,9 @@ from typing import Iterable, Pattern, Union
 import torch
 from torch import nn
 
-from .flag import PrecisionFlag
-from .linear import DyQLinear, _check_bits
+from . import ops
+from .flag import PrecisionFlag, check_bits
+from .linear import DyQLinear
 
 SkipPattern = Union[str, Pattern[str]]
 DEFAULT_SKIP = ("lm_head",)
@@ -89,9 +90,9 @@ def quantize_model(model: nn.Module, group_size: int = 128, skip: Iterable[SkipP
     """
     if not isinstance(model, nn.Module):
         raise TypeError(f"model must be a torch.nn.Module, got {type(model).__name__}")
-    if group_size not in (32, 64, 128):
-        raise ValueError(f"group_size must be 32, 64 or 128, got {group_size!r}")
-    _check_bits(act_bits)
+    if group_size not in ops.GROUP_SIZES:
+        raise ValueError(f"group_size must be one of {ops.GROUP_SIZES}, got {group_size!r}")
+    check_bits(act_bits, "act_bits")
     skip = tuple(skip) if not isinstance(skip, (str, re.Pattern)) else (skip,)
     report = QuantizationReport(group_size=group_size, model_bytes_before=_module_bytes(model))
 
@@ -132,7 +133,7 @@ def set_precision(module_or_model: nn.Module, bits: int) -> int:
 
     Layers bound to a PrecisionFlag get the value through their flag (one write per distinct flag).
     """
-    bits = _check_bits(bits, "bits")
+    bits = check_bits(bits)
     layers = dyq_layers(module_or_model)
     for layer in layers:
         layer.set_precision(bits)
