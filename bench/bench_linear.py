@@ -8,15 +8,11 @@ Prints a table of median milliseconds and writes bench/results/linear_cpu.json.
 from __future__ import annotations
 
 import argparse
-import sys
-from pathlib import Path
 
 import torch
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import environment, median_ms, print_table, write_json  # noqa: E402
-
-import dyq  # noqa: E402
+import dyq
+from dyq.results import environment, median_ms, print_table, write_json
 
 SHAPES = [(4096, 4096), (11008, 4096), (4096, 11008)]  # (N, K): Llama-2-7B's attention, MLP up, MLP down
 BATCHES = [1, 16, 256]

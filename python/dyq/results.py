@@ -1,4 +1,5 @@
-"""Timing and reporting shared by the benchmarks: medians, a readable table, and JSON with the context."""
+"""Timing and result files shared by the benchmarks and dyq's own commands: medians, a readable
+table, and JSON that records the machine and the versions it was measured with."""
 from __future__ import annotations
 
 import json
@@ -10,7 +11,8 @@ from pathlib import Path
 
 import torch
 
-RESULTS = Path(__file__).resolve().parent / "results"
+# bench/results/ of a source checkout; commands take an explicit path when installed elsewhere.
+RESULTS = Path.cwd() / "bench" / "results"
 
 
 def cpu_name() -> str:
@@ -68,8 +70,13 @@ def print_table(headers: list[str], rows: list[list], title: str = "") -> None:
         print("  ".join(c.rjust(w) for c, w in zip(r, widths)))
 
 
-def write_json(name: str, payload: dict) -> Path:
-    RESULTS.mkdir(parents=True, exist_ok=True)
-    path = RESULTS / name
-    path.write_text(json.dumps(payload, indent=2) + "\n")
+def write_json(path: str | os.PathLike, payload: dict) -> Path:
+    """Writes payload as indented JSON; a bare file name lands in ``RESULTS`` (bench/results/)."""
+    path = Path(path)
+    if path.parent == Path("."):
+        path = RESULTS / path
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(path.suffix + ".tmp")
+    tmp.write_text(json.dumps(payload, indent=2) + "\n")
+    tmp.replace(path)  # atomic: a reader never sees half a file
     return path
