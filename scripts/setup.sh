@@ -9,7 +9,7 @@ SUDO=""
 if [ "$(id -u)" != 0 ]; then SUDO="sudo"; fi
 if ! dpkg -s libeigen3-dev libgtest-dev cmake >/dev/null 2>&1; then
   $SUDO apt-get update -qq
-  $SUDO DEBIAN_FRONTEND=noninteractive apt-get install -y -qq libeigen3-dev libgtest-dev cmake g++ >/dev/null
+  $SUDO env DEBIAN_FRONTEND=noninteractive apt-get install -y -qq libeigen3-dev libgtest-dev cmake g++ >/dev/null
 fi
 
 PYTHON=${PYTHON:-python3}
