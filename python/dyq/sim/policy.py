@@ -1,0 +1,209 @@
+"""The simulation policy: an OpenVLA-shaped Hugging Face Llama over observation and action tokens.
+
+One control step is what OpenVLA does: a **prefill** of the prompt ``[BOS, task, obs_1 .. obs_D]``
+(OpenVLA's is BOS, 256 image patch tokens and the instruction), then **7 action tokens decoded
+greedily** with a KV cache, each restricted to the 256 action bins, de-tokenized through the training
+actions' 1st/99th percentiles (:mod:`dyq.sim.tokens`). The model is a plain ``LlamaForCausalLM`` built
+from a config whose widths are multiples of the INT4 group size, so ``dyq.quantize_model`` converts every
+projection of every layer; embeddings and the LM head stay in full precision.
+
+A checkpoint is a folder with ``model.safetensors`` (bf16 by default: a few MB) and ``policy.json``
+(the Llama config, the tokenizers' ranges, the observation names and how it was trained).
+"""
+from __future__ import annotations
+
+import copy
+import dataclasses
+import json
+import os
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from .tokens import ACTION_DIMS, BINS, BinTokenizer, Vocabulary
+
+CHECKPOINT_FILE = "model.safetensors"
+CONFIG_FILE = "policy.json"
+
+
+def _cache_keyword() -> str:
+    """transformers 5 renamed the KV-cache argument and output from ``past_key_values`` to ``cache``."""
+    import inspect
+
+    from transformers import LlamaForCausalLM
+
+    return "cache" if "cache" in inspect.signature(LlamaForCausalLM.forward).parameters else "past_key_values"
+
+
+@dataclasses.dataclass
+class PolicyConfig:
+    """Everything needed to rebuild a policy besides its weights.
+
+    ``hidden_size`` and ``intermediate_size`` are multiples of 128, the default INT4 group size.
+    """
+
+    task: str
+    observation_names: list[str]
+    observation_tokenizer: dict
+    action_tokenizer: dict
+    hidden_size: int = 256
+    intermediate_size: int = 768
+    layers: int = 4
+    heads: int = 4
+    training: dict = dataclasses.field(default_factory=dict)
+
+    def __post_init__(self):
+        for name in ("hidden_size", "intermediate_size"):
+            value = getattr(self, name)
+            if value % 128:
+                raise ValueError(f"{name} must be a multiple of 128 (the INT4 group size), got {value}")
+        if self.hidden_size % self.heads:
+            raise ValueError(f"hidden_size {self.hidden_size} must be a multiple of heads {self.heads}")
+
+    @property
+    def vocabulary(self) -> Vocabulary:
+        return Vocabulary(tasks=(self.task,), observation_dims=len(self.observation_names))
+
+    def llama_config(self):
+        from transformers import LlamaConfig
+
+        vocabulary = self.vocabulary
+        return LlamaConfig(
+            vocab_size=vocabulary.size,
+            hidden_size=self.hidden_size,
+            intermediate_size=self.intermediate_size,
+            num_hidden_layers=self.layers,
+            num_attention_heads=self.heads,
+            num_key_value_heads=self.heads,
+            max_position_embeddings=vocabulary.prefix_length + ACTION_DIMS + 8,
+            bos_token_id=1,
+            eos_token_id=None,
+            pad_token_id=0,
+            tie_word_embeddings=False,
+        )
+
+    def to_dict(self) -> dict:
+        return dataclasses.asdict(self)
+
+    @classmethod
+    def from_dict(cls, data: dict) -> "PolicyConfig":
+        fields = {f.name for f in dataclasses.fields(cls)}
+        unknown = set(data) - fields
+        if unknown:
+            raise ValueError(f"unknown policy config keys: {sorted(unknown)}")
+        return cls(**data)
+
+
+class TokenPolicy:
+    """A trained (or freshly built) policy: observation vector in, 7-D action out.
+
+    ``prefill`` and ``decode`` are the two phases of a control step, so that
+    :class:`dyq.DyQRuntime` can dispatch beside the prefill and publish the bit-width before the decode;
+    ``act`` runs both.
+    """
+
+    def __init__(self, config: PolicyConfig, model: torch.nn.Module | None = None):
+        from transformers import LlamaForCausalLM
+
+        self.config = config
+        self.vocabulary = config.vocabulary
+        self.observation_tokenizer = BinTokenizer.from_dict(config.observation_tokenizer)
+        self.action_tokenizer = BinTokenizer.from_dict(config.action_tokenizer)
+        if self.observation_tokenizer.dims != len(config.observation_names):
+            raise ValueError("observation tokenizer and observation_names disagree on the dimension count")
+        if self.action_tokenizer.dims != ACTION_DIMS:
+            raise ValueError(f"the action tokenizer must have {ACTION_DIMS} dimensions")
+        self.model = model if model is not None else LlamaForCausalLM(config.llama_config())
+        self.model.eval()
+        self._action_slice = slice(self.vocabulary.first_action, self.vocabulary.first_action + BINS)
+        self._cache_keyword = _cache_keyword()
+
+    # -- one control step ---------------------------------------------------------------------
+
+    def prompt(self, observation: np.ndarray) -> torch.Tensor:
+        bins = self.observation_tokenizer.encode(observation)
+        return torch.from_numpy(self.vocabulary.prefix(self.config.task, bins)).reshape(1, -1)
+
+    @torch.inference_mode()
+    def prefill(self, observation: np.ndarray) -> tuple[Any, int]:
+        """Runs the prompt through the model; returns the KV cache and the first action bin."""
+        from transformers import DynamicCache
+
+        cache = DynamicCache()
+        out = self.model(input_ids=self.prompt(observation), use_cache=True, logits_to_keep=1,
+                         **{self._cache_keyword: cache})
+        return cache, int(out.logits[0, -1, self._action_slice].argmax())
+
+    @torch.inference_mode()
+    def decode(self, prefilled: tuple[Any, int]) -> np.ndarray:
+        """Greedily decodes the remaining action tokens; returns the 7 action bins."""
+        cache, first = prefilled
+        bins = [first]
+        position = self.vocabulary.prefix_length
+        for _ in range(ACTION_DIMS - 1):
+            token = torch.tensor([[bins[-1] + self.vocabulary.first_action]])
+            out = self.model(input_ids=token, position_ids=torch.tensor([[position]]), use_cache=True,
+                             logits_to_keep=1, **{self._cache_keyword: cache})  # the cache grows in place
+            position += 1
+            bins.append(int(out.logits[0, -1, self._action_slice].argmax()))
+        return np.asarray(bins, dtype=np.int64)
+
+    def action(self, bins: np.ndarray) -> np.ndarray:
+        """De-tokenized action in the environment's units (float64, 7-D)."""
+        return self.action_tokenizer.decode(bins)
+
+    def act(self, observation: np.ndarray) -> np.ndarray:
+        return self.action(self.decode(self.prefill(observation)))
+
+    # -- training-time sequences ----------------------------------------------------------------
+
+    def sequences(self, observations: np.ndarray, actions: np.ndarray) -> tuple[torch.Tensor, torch.Tensor]:
+        """Token ids ``[N, P + 7]`` of whole steps and the action bins ``[N, 7]`` they should decode."""
+        prefix = self.vocabulary.prefix(self.config.task, self.observation_tokenizer.encode(observations))
+        action_bins = self.action_tokenizer.encode(actions)
+        ids = np.concatenate([prefix, self.vocabulary.action_tokens(action_bins)], axis=1)
+        return torch.from_numpy(ids), torch.from_numpy(action_bins)
+
+    def action_logits(self, ids: torch.Tensor) -> torch.Tensor:
+        """Logits over the 256 action bins at the 7 positions that predict the action tokens."""
+        p = self.vocabulary.prefix_length
+        hidden = self.model.model(input_ids=ids).last_hidden_state[:, p - 1: p - 1 + ACTION_DIMS]
+        return self.model.lm_head(hidden)[..., self._action_slice]
+
+    # -- copies, saving and loading --------------------------------------------------------------
+
+    def copy(self) -> "TokenPolicy":
+        return TokenPolicy(self.config, copy.deepcopy(self.model))
+
+    def save(self, directory: str | os.PathLike, dtype: torch.dtype = torch.bfloat16) -> Path:
+        from safetensors.torch import save_file
+
+        directory = Path(directory)
+        directory.mkdir(parents=True, exist_ok=True)
+        tensors = {k: v.detach().to(dtype).contiguous() for k, v in self.model.state_dict().items()}
+        save_file(tensors, str(directory / CHECKPOINT_FILE))
+        (directory / CONFIG_FILE).write_text(json.dumps(self.config.to_dict(), indent=1) + "\n")
+        return directory
+
+    @classmethod
+    def load(cls, directory: str | os.PathLike) -> "TokenPolicy":
+        """Loads a checkpoint written by :meth:`save`; weights are computed in fp32."""
+        from safetensors.torch import load_file
+
+        directory = Path(directory)
+        for name in (CONFIG_FILE, CHECKPOINT_FILE):
+            if not (directory / name).is_file():
+                raise FileNotFoundError(f"policy checkpoint {directory} has no {name}")
+        config = PolicyConfig.from_dict(json.loads((directory / CONFIG_FILE).read_text()))
+        policy = cls(config)
+        state = {k: v.float() for k, v in load_file(str(directory / CHECKPOINT_FILE)).items()}
+        missing, unexpected = policy.model.load_state_dict(state, strict=False)
+        # lm_head and embeddings are separate parameters (untied); rotary buffers are not saved.
+        missing = [k for k in missing if "rotary_emb" not in k]
+        if missing or unexpected:
+            raise ValueError(f"checkpoint {directory} does not match its config: missing {missing}, "
+                             f"unexpected {unexpected}")
+        policy.model.eval()
+        return policy

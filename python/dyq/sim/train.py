@@ -1,0 +1,172 @@
+"""``dyq train``: behavior cloning of a :class:`~dyq.sim.policy.TokenPolicy` on demonstrations.
+
+The loss is the cross-entropy of the 7 action tokens given the observation prompt (teacher forcing over
+one whole step), restricted to the 256 action bins as decoding is. Training is seeded and resumable: the
+batch of step ``i`` is drawn from ``numpy.random.default_rng([seed, i])``, and ``train_state.pt`` in the
+output folder (model, optimizer, step) is rewritten every ``--save-every`` steps, so an interrupted run
+continues where it stopped and gives the same result. The finished policy is saved as bf16 safetensors
+plus ``policy.json``, with the command line that produced it.
+"""
+from __future__ import annotations
+
+import argparse
+import math
+import shlex
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from .policy import PolicyConfig, TokenPolicy
+from .tokens import BinTokenizer
+
+STATE_FILE = "train_state.pt"
+
+
+def load_demonstrations(path: str | Path) -> tuple[list[np.ndarray], list[np.ndarray], list[str]]:
+    """Per-demo observation vectors and clean action labels from a robomimic-layout HDF5 file."""
+    import h5py
+
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"demonstration file {path} does not exist")
+    observations, actions = [], []
+    with h5py.File(path, "r") as f:
+        if "data" not in f:
+            raise ValueError(f"{path} is not in robomimic's layout (no 'data' group)")
+        names = sorted(f["data"].keys(), key=lambda k: int(k.rsplit("_", 1)[-1]))
+        for name in names:
+            demo = f["data"][name]
+            observations.append(np.asarray(demo["obs"]["policy_vector"], dtype=np.float32))
+            actions.append(np.asarray(demo["actions"], dtype=np.float32))
+        observation_names = [str(n) for n in f["data"].attrs.get("policy_vector_names", [])]
+    if not observations:
+        raise ValueError(f"{path} holds no demonstrations")
+    return observations, actions, observation_names
+
+
+def _lr(step: int, steps: int, peak: float, warmup: int) -> float:
+    if step < warmup:
+        return peak * (step + 1) / warmup
+    progress = (step - warmup) / max(1, steps - warmup)
+    return peak * (0.1 + 0.9 * 0.5 * (1 + math.cos(math.pi * progress)))
+
+
+def train(task: str, data: str | Path, out: str | Path, *, steps: int = 3000, batch_size: int = 128,
+          lr: float = 1e-3, hidden_size: int = 256, intermediate_size: int = 768, layers: int = 4,
+          heads: int = 4, seed: int = 0, save_every: int = 250, validation_demos: int = 10,
+          observation_names: list[str] | None = None, command: str = "", progress: bool = True) -> TokenPolicy:
+    """Trains (or resumes training of) a policy and saves it under ``out``; returns the policy."""
+    from tqdm import tqdm
+
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    observations, actions, stored_names = load_demonstrations(data)
+    names = observation_names or stored_names or [f"obs_{i}" for i in range(observations[0].shape[1])]
+    if len(observations) <= validation_demos:
+        raise ValueError(f"need more than validation_demos={validation_demos} demonstrations, "
+                         f"{data} has {len(observations)}")
+    # The last demos are held out: validation token accuracy says whether training still helps.
+    train_obs = np.concatenate(observations[:-validation_demos]) if validation_demos else np.concatenate(observations)
+    train_act = np.concatenate(actions[:-validation_demos]) if validation_demos else np.concatenate(actions)
+    val_obs = np.concatenate(observations[-validation_demos:]) if validation_demos else train_obs[:0]
+    val_act = np.concatenate(actions[-validation_demos:]) if validation_demos else train_act[:0]
+
+    torch.manual_seed(seed)
+    config = PolicyConfig(
+        task=task,
+        observation_names=list(names),
+        observation_tokenizer=BinTokenizer.range_with_margin(train_obs).to_dict(),
+        action_tokenizer=BinTokenizer.percentiles(train_act).to_dict(),
+        hidden_size=hidden_size, intermediate_size=intermediate_size, layers=layers, heads=heads,
+        training={"data": str(data), "demos": len(observations) - validation_demos, "samples": len(train_obs),
+                  "steps": steps, "batch_size": batch_size, "lr": lr, "seed": seed, "command": command},
+    )
+    policy = TokenPolicy(config)
+    ids, targets = policy.sequences(train_obs, train_act)
+    val_ids, val_targets = policy.sequences(val_obs, val_act)
+    optimizer = torch.optim.AdamW(policy.model.parameters(), lr=lr, weight_decay=0.01, betas=(0.9, 0.95))
+
+    start, loss_value = 0, float("nan")
+    state_path = out / STATE_FILE
+    if state_path.is_file():
+        state = torch.load(state_path, weights_only=False)
+        if state["config"] != config.to_dict():
+            raise ValueError(f"{state_path} was written for another configuration; remove it to start over")
+        policy.model.load_state_dict(state["model"])
+        optimizer.load_state_dict(state["optimizer"])
+        start, loss_value = state["step"], state["loss"]
+        print(f"resuming from step {start} of {steps}")
+
+    def validation_accuracy() -> float:
+        if not len(val_ids):
+            return float("nan")
+        policy.model.eval()
+        with torch.no_grad():
+            predicted = policy.action_logits(val_ids[:2048]).argmax(-1)
+        policy.model.train()
+        return float((predicted == val_targets[:2048]).float().mean())
+
+    def save_state(step: int) -> None:
+        tmp = state_path.with_suffix(".tmp")
+        torch.save({"config": config.to_dict(), "model": policy.model.state_dict(),
+                    "optimizer": optimizer.state_dict(), "step": step, "loss": loss_value}, tmp)
+        tmp.replace(state_path)
+
+    policy.model.train()
+    bar = tqdm(range(start, steps), initial=start, total=steps, disable=not progress, desc=f"train {task}")
+    begin = time.perf_counter()
+    for step in bar:
+        rng = np.random.default_rng([seed, step])
+        index = torch.from_numpy(rng.integers(0, len(ids), size=batch_size))
+        for group in optimizer.param_groups:
+            group["lr"] = _lr(step, steps, lr, warmup=min(200, steps // 10 + 1))
+        logits = policy.action_logits(ids[index])
+        loss = torch.nn.functional.cross_entropy(logits.reshape(-1, logits.shape[-1]), targets[index].reshape(-1))
+        optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        torch.nn.utils.clip_grad_norm_(policy.model.parameters(), 1.0)
+        optimizer.step()
+        current = loss.item()
+        loss_value = current if math.isnan(loss_value) else 0.9 * loss_value + 0.1 * current
+        if (step + 1) % save_every == 0 or step + 1 == steps:
+            save_state(step + 1)
+            bar.set_postfix(loss=f"{loss_value:.3f}", val_acc=f"{validation_accuracy():.3f}")
+    policy.model.eval()
+    config.training.update({"final_loss": loss_value, "validation_token_accuracy": validation_accuracy(),
+                            "seconds_this_run": round(time.perf_counter() - begin, 1)})
+    policy.save(out)
+    return policy
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("task", help="task name (lift, pick_place_can, square)")
+    parser.add_argument("--data", required=True, help="demonstrations (HDF5, robomimic layout) from `dyq collect`")
+    parser.add_argument("--out", required=True, help="output folder for the checkpoint")
+    parser.add_argument("--steps", type=int, default=3000)
+    parser.add_argument("--batch-size", type=int, default=128)
+    parser.add_argument("--lr", type=float, default=1e-3)
+    parser.add_argument("--hidden-size", type=int, default=256)
+    parser.add_argument("--intermediate-size", type=int, default=768)
+    parser.add_argument("--layers", type=int, default=4)
+    parser.add_argument("--heads", type=int, default=4)
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--save-every", type=int, default=250)
+    parser.add_argument("--validation-demos", type=int, default=10)
+    parser.add_argument("--threads", type=int, default=0, help="torch threads (0: torch's default)")
+
+
+def main(args: argparse.Namespace) -> int:
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    command = "dyq train " + " ".join(shlex.quote(a) for a in sys.argv[2:]) if len(sys.argv) > 2 else ""
+    policy = train(args.task, args.data, args.out, steps=args.steps, batch_size=args.batch_size, lr=args.lr,
+                   hidden_size=args.hidden_size, intermediate_size=args.intermediate_size, layers=args.layers,
+                   heads=args.heads, seed=args.seed, save_every=args.save_every,
+                   validation_demos=args.validation_demos, command=command)
+    info = policy.config.training
+    print(f"saved {args.out}: loss {info['final_loss']:.3f}, validation token accuracy "
+          f"{info['validation_token_accuracy']:.3f}")
+    return 0
