@@ -134,7 +134,39 @@ class LiftExpert(Expert):
         return self._move(obs, np.array([eef[0], eef[1], self.lift_z]), CLOSE)
 
 
-EXPERTS = {"lift": LiftExpert}
+class PickPlaceCanExpert(Expert):
+    """PickPlaceCan: grasp the can at mid-height, lift it over the bins' walls, carry it above its goal
+    (the bin's fixed quadrant), lower it and let go."""
+
+    task = "pick_place_can"
+    hover = 0.10
+    transport_z = 1.05  # the can's bottom clears the walls between the bins
+    release_z = 0.92  # end-effector height to let go at: the can's centre a few cm above the goal's floor
+    goal_tol = 0.02  # xy distance of the can from the goal before lowering
+
+    def act(self, env, obs: dict) -> np.ndarray:
+        if self.phase == "release":
+            # Fingers open and rising: done once the can stands in the bin (the episode ends on success).
+            eef = obs["robot0_eef_pos"]
+            return self._move(obs, np.array([eef[0], eef[1], self.transport_z]), OPEN, envs.finger_yaw(obs))
+        return super().act(env, obs)
+
+    def carry(self, obs: dict) -> np.ndarray:
+        eef = obs["robot0_eef_pos"]
+        can = envs.object_pos(self.task, obs)
+        to_goal = envs.CAN_BIN_POS[:2] - can[:2]
+        if np.linalg.norm(to_goal) > self.goal_tol:
+            if eef[2] < self.transport_z - 0.03 and np.linalg.norm(to_goal) > 0.1:
+                return self._move(obs, np.array([eef[0], eef[1], self.transport_z]), CLOSE)  # rise first
+            target = np.array([eef[0] + to_goal[0], eef[1] + to_goal[1], self.transport_z])
+            return self._move(obs, target, CLOSE)
+        target = np.array([eef[0] + to_goal[0], eef[1] + to_goal[1], self.release_z])
+        if eef[2] < self.release_z + 0.01:
+            self.phase = "release"
+        return self._move(obs, target, CLOSE)
+
+
+EXPERTS = {"lift": LiftExpert, "pick_place_can": PickPlaceCanExpert}
 
 
 def make_expert(task: str) -> Expert:
