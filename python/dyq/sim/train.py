@@ -23,6 +23,8 @@ from .policy import PolicyConfig, TokenPolicy
 from .tokens import BinTokenizer
 
 STATE_FILE = "train_state.pt"
+CALIBRATION_FILE = "calibration.safetensors"
+CALIBRATION_SAMPLES = 512
 
 
 def load_demonstrations(path: str | Path) -> tuple[list[np.ndarray], list[np.ndarray], list[str]]:
@@ -138,7 +140,30 @@ def train(task: str, data: str | Path, out: str | Path, *, steps: int = 3000, ba
     config.training.update({"final_loss": loss_value, "validation_token_accuracy": validation_accuracy(),
                             "seconds_this_run": round(time.perf_counter() - begin, 1)})
     policy.save(out)
+    save_calibration_set(out, train_obs, train_act, seed)
     return policy
+
+
+def save_calibration_set(out: Path, observations: np.ndarray, actions: np.ndarray, seed: int) -> None:
+    """A random sample of training steps saved beside the checkpoint, so that methods which calibrate
+    on data (activation smoothing, threshold calibration) use training data, never evaluation episodes."""
+    from safetensors.numpy import save_file
+
+    rng = np.random.default_rng([seed, 1 << 20])
+    index = np.sort(rng.choice(len(observations), size=min(CALIBRATION_SAMPLES, len(observations)), replace=False))
+    save_file({"observations": np.ascontiguousarray(observations[index], dtype=np.float32),
+               "actions": np.ascontiguousarray(actions[index], dtype=np.float32)}, str(out / CALIBRATION_FILE))
+
+
+def load_calibration_set(checkpoint: str | Path) -> tuple[np.ndarray, np.ndarray]:
+    """The training observations and actions saved with a checkpoint by :func:`train`."""
+    from safetensors.numpy import load_file
+
+    path = Path(checkpoint) / CALIBRATION_FILE
+    if not path.is_file():
+        raise FileNotFoundError(f"checkpoint {checkpoint} has no {CALIBRATION_FILE} (written by dyq train)")
+    data = load_file(str(path))
+    return data["observations"], data["actions"]
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -159,13 +184,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def main(args: argparse.Namespace) -> int:
+    from . import envs
+
     if args.threads:
         torch.set_num_threads(args.threads)
     command = "dyq train " + " ".join(shlex.quote(a) for a in sys.argv[2:]) if len(sys.argv) > 2 else ""
     policy = train(args.task, args.data, args.out, steps=args.steps, batch_size=args.batch_size, lr=args.lr,
                    hidden_size=args.hidden_size, intermediate_size=args.intermediate_size, layers=args.layers,
                    heads=args.heads, seed=args.seed, save_every=args.save_every,
-                   validation_demos=args.validation_demos, command=command)
+                   validation_demos=args.validation_demos, command=command,
+                   observation_names=envs.observation_names(args.task) if args.task in envs.TASKS else None)
     info = policy.config.training
     print(f"saved {args.out}: loss {info['final_loss']:.3f}, validation token accuracy "
           f"{info['validation_token_accuracy']:.3f}")
