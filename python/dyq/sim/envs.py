@@ -38,10 +38,14 @@ TASKS: dict[str, TaskSpec] = {
     "square": TaskSpec("NutAssemblySquare", 400, "SquareNut", np.pi),
 }
 
-# Where the expert grasps the square nut: the handle, this far along the nut's local x axis from its centre.
-SQUARE_HANDLE_OFFSET = 0.054
+# Where the expert grasps the square nut: this far along the nut's local x axis from its centre, the middle of
+# the handle's part outside the ring (the handle box spans 0.029..0.079, the ring's wall ends at 0.044).
+# At the handle box's centre, 0.054, the finger pads landed on the ring's wall whenever the hand stopped a
+# few mm short (3/50 seeds, all with the handle pointing at the robot).
+SQUARE_HANDLE_OFFSET = 0.062
 # Fixed in the robosuite scenes (not randomized), so they are constants rather than observations.
-SQUARE_PEG_POS = np.array([0.23, 0.1, 0.85])
+SQUARE_PEG_POS = np.array([0.23, 0.1, 0.85])  # axis-aligned square peg, 3.2 cm wide, top at z = 0.95
+SQUARE_NUT_LIFTED_Z = 0.87  # the nut's centre rests at about z = 0.83 on the table
 # The can's quadrant of the goal bin spans x 0.10..0.295, y 0.28..0.525; its centre (0.1975, 0.4025) is at
 # the edge of the Panda's reach with the gripper pointing down, so the expert aims at a point 4-5 cm inside
 # the quadrant's corner nearest the robot.
@@ -162,7 +166,7 @@ def target_finger_yaw(task: str, obs: dict) -> float:
     """The finger-line yaw the expert turns to, nearest to the current one among the symmetric choices.
 
     Cube: across two faces. Square nut: across the handle (a bar along the nut's local x axis, so the fingers
-    close along its local y). Can: symmetric itself, so the fingers close across the line to the bin, which
+    close along its local y); once lifted, the nut's yaw turns to the peg's instead (mod 90 degrees). Can: symmetric itself, so the fingers close across the line to the bin, which
     keeps the can between the fingers against the transport's acceleration and makes the yaw vary with the
     can's placement; the turn fades out near the goal, where that line is undefined.
     """
@@ -172,12 +176,17 @@ def target_finger_yaw(task: str, obs: dict) -> float:
         # The bearing is undefined over the goal: fade the turn out over the last 5 cm.
         fade = min(1.0, float(np.linalg.norm(d)) / 0.05)
         return current + fade * wrap(np.arctan2(d[1], d[0]) + np.pi / 2 - current, np.pi)
-    else:
-        target = quat_yaw(obs[spec(task).object_key + "_quat"])
-        if task == "square":
-            target += np.pi / 2
-        period = spec(task).yaw_period
-    return current + wrap(target - current, period)
+    obj_yaw = quat_yaw(obs[spec(task).object_key + "_quat"])
+    if task == "square" and square_nut_lifted(obs):
+        # Held: turn the nut so its square hole lines up with the axis-aligned square peg, its handle pointing
+        # to the robot or sideways (the gripper cannot reach beyond the peg with the handle pointing away).
+        return current + min((wrap(y - obj_yaw) for y in (np.pi / 2, np.pi, -np.pi / 2)), key=abs)
+    target = obj_yaw + (np.pi / 2 if task == "square" else 0.0)
+    return current + wrap(target - current, spec(task).yaw_period)
+
+
+def square_nut_lifted(obs: dict) -> bool:
+    return float(obs["SquareNut_pos"][2]) > SQUARE_NUT_LIFTED_Z
 
 
 def gripper_opening(obs: dict) -> float:

@@ -89,7 +89,7 @@ class Expert:
     def act(self, env, obs: dict) -> np.ndarray:
         eef = obs["robot0_eef_pos"]
         grasp = envs.grasp_point(self.task, obs)
-        if self.phase in ("carry",) and not self.grasped(obs):
+        if self.phase in ("carry", "lower") and not self.grasped(obs):
             self.phase = "approach"  # dropped it: start over
         if self.phase == "approach":
             target = grasp + [0.0, 0.0, self.hover + self.grasp_dz]
@@ -166,7 +166,37 @@ class PickPlaceCanExpert(Expert):
         return self._move(obs, target, CLOSE)
 
 
-EXPERTS = {"lift": LiftExpert, "pick_place_can": PickPlaceCanExpert}
+class SquareExpert(Expert):
+    """NutAssemblySquare: grasp the nut's handle across it, lift it over the peg's top (z = 0.95), turn its
+    hole to the peg's yaw, centre it over the peg and lower it down the peg."""
+
+    task = "square"
+    hover = 0.10
+    xy_tol = 0.006
+    z_tol = 0.006
+    close_steps = 10
+    lift_z = 1.0  # end-effector height for the transfer: the nut hangs just below it, over the peg's top
+    lower_z = 0.83
+    peg_tol = 0.004  # nut centre over the peg, xy
+    peg_yaw_tol = np.radians(4.0)
+
+    def carry(self, obs: dict) -> np.ndarray:
+        eef = obs["robot0_eef_pos"]
+        nut = envs.object_pos(self.task, obs)
+        to_peg = envs.SQUARE_PEG_POS[:2] - nut[:2]
+        over = np.linalg.norm(to_peg) < self.peg_tol and self._yaw_error(obs) < self.peg_yaw_tol
+        if self.phase == "carry" and over and eef[2] > self.lift_z - 0.02:
+            self.phase = "lower"
+        if self.phase == "lower":
+            if np.linalg.norm(to_peg) > 0.02:
+                self.phase = "carry"  # slid off: lift again
+            return self._move(obs, np.array([eef[0] + to_peg[0], eef[1] + to_peg[1], self.lower_z]), CLOSE)
+        if eef[2] < self.lift_z - 0.03 and np.linalg.norm(to_peg) > 0.03:
+            return self._move(obs, np.array([eef[0], eef[1], self.lift_z]), CLOSE)  # rise first
+        return self._move(obs, np.array([eef[0] + to_peg[0], eef[1] + to_peg[1], self.lift_z]), CLOSE)
+
+
+EXPERTS = {"lift": LiftExpert, "pick_place_can": PickPlaceCanExpert, "square": SquareExpert}
 
 
 def make_expert(task: str) -> Expert:
