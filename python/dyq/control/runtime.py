@@ -28,8 +28,9 @@ import time
 from concurrent.futures import Future, ThreadPoolExecutor
 from typing import Any, Callable, Iterator
 
+from ..core.precision import VALID_BITS, check_bits
 from .dispatch import KinematicDispatcher
-from .flag import VALID_BITS, PrecisionFlag, check_bits
+from .flag import PrecisionFlag
 
 
 @dataclasses.dataclass
