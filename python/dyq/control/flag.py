@@ -21,7 +21,7 @@ only when no kernel that may read the old value is still pending:
 * the host writes the flag, then launches (or replays the graph of) the decode; the kernel launch
   orders the earlier host store before the kernel's reads;
 * the host must not write the flag while kernels that should see the previous value are queued or
-  running (for example a prefill that was enqueued asynchronously). :class:`dyq.runtime.DyQRuntime`
+  running (for example a prefill that was enqueued asynchronously). :class:`dyq.DyQRuntime`
   synchronizes before any write that changes the value, and publishes b*_t before it signals the
   decode.
 * kernels read the flag once per launch with an uncached (volatile, ``__ldcv``) load so that no copy

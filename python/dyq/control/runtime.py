@@ -77,8 +77,8 @@ def _default_barrier(flag: PrecisionFlag) -> Callable[[], None] | None:
 
 
 class DyQRuntime:
-    """Runs a :class:`~dyq.dispatch.KinematicDispatcher` beside the model and drives a
-    :class:`~dyq.flag.PrecisionFlag`.
+    """Runs a :class:`~dyq.KinematicDispatcher` beside the model and drives a
+    :class:`~dyq.PrecisionFlag`.
 
     Args:
         dispatcher: the kinematic dispatcher (its config decides action or pose input).
