@@ -13,41 +13,25 @@ bench/results/cuda_<device>.json with the device, driver, versions, shapes and m
 from __future__ import annotations
 
 import argparse
-import json
 import re
-import statistics
-import subprocess
 import sys
 from pathlib import Path
 
 import torch
 
+import dyq
+from dyq.results import cuda_median_ms, environment, write_json
+
 SHAPES = ((4096, 4096), (12288, 4096), (22016, 4096), (4096, 11008))  # (N, K): qkv/o, fused qkv, gate+up, down
 ROWS = (1, 4, 16, 64, 256, 512)
-ACT_BITS = (2, 4, 8, 16)
 GROUP_SIZE = 128
-
-
-def time_ms(fn, warmup: int, repeats: int) -> float:
-    """Median milliseconds of `fn` over `repeats` runs, each bracketed by CUDA events."""
-    for _ in range(warmup):
-        fn()
-    times = []
-    for _ in range(repeats):
-        start, end = torch.cuda.Event(enable_timing=True), torch.cuda.Event(enable_timing=True)
-        start.record()
-        fn()
-        end.record()
-        end.synchronize()
-        times.append(start.elapsed_time(end))
-    return statistics.median(times)
 
 
 def copy_bandwidth_gbs(warmup: int, repeats: int) -> float:
     """Device-to-device copy of 1 GiB, counting bytes read plus bytes written."""
     src = torch.empty(1 << 30, dtype=torch.uint8, device="cuda")
     dst = torch.empty_like(src)
-    ms = time_ms(lambda: dst.copy_(src), warmup, repeats)
+    ms = cuda_median_ms(lambda: dst.copy_(src), warmup=warmup, repeats=repeats)
     return 2 * src.numel() / ms / 1e6
 
 
@@ -86,18 +70,6 @@ def torch_int4_layer(w_bf16: torch.Tensor):
     return weight, scales_and_zeros
 
 
-def device_info() -> dict:
-    props = torch.cuda.get_device_properties(0)
-    driver = ""
-    try:
-        driver = subprocess.run(["nvidia-smi", "--query-gpu=driver_version", "--format=csv,noheader"],
-                                capture_output=True, text=True, check=False).stdout.strip().splitlines()[0]
-    except (OSError, IndexError):
-        pass
-    return {"device": props.name, "capability": f"{props.major}.{props.minor}", "sms": props.multi_processor_count,
-            "l2_bytes": props.L2_cache_size, "driver": driver, "torch": torch.__version__, "cuda": torch.version.cuda}
-
-
 def bench_shape(n: int, k: int, rows, warmup: int, repeats: int, copy_gbs: float, results: list, table: list):
     w = (torch.randn(n, k, device="cuda") * 0.02).to(torch.bfloat16)
     qweight, scales = torch.ops.dyq.quantize_weight(w, GROUP_SIZE)
@@ -113,15 +85,15 @@ def bench_shape(n: int, k: int, rows, warmup: int, repeats: int, copy_gbs: float
     for m in rows:
         x = torch.randn(m, k, device="cuda").to(torch.bfloat16)
         entry = {"n": n, "k": k, "m": m, "group_size": GROUP_SIZE, "ms": {}}
-        for bits in ACT_BITS:
+        for bits in dyq.VALID_BITS:
             fn = Rotating(lambda i, b=bits: torch.ops.dyq.gemm(x, *dyq_layers[i], GROUP_SIZE, b), copies)
-            entry["ms"][f"dyq_a{bits}"] = time_ms(fn, warmup, repeats)
+            entry["ms"][f"dyq_a{bits}"] = cuda_median_ms(fn, warmup=warmup, repeats=repeats)
         fn = Rotating(lambda i: torch.matmul(x, bf16_layers[i].t()), len(bf16_layers))
-        entry["ms"]["cublas_bf16"] = time_ms(fn, warmup, repeats)
+        entry["ms"]["cublas_bf16"] = cuda_median_ms(fn, warmup=warmup, repeats=repeats)
         if int4_layers:
             fn = Rotating(lambda i: torch._weight_int4pack_mm(x, int4_layers[i][0], GROUP_SIZE, int4_layers[i][1]),
                           copies)
-            entry["ms"]["torch_int4_weight_only"] = time_ms(fn, warmup, repeats)
+            entry["ms"]["torch_int4_weight_only"] = cuda_median_ms(fn, warmup=warmup, repeats=repeats)
         dyq_bytes = qweight.numel() + scales.numel() * 4 + x.numel() * 2 + m * n * 2
         if m == 1:
             entry["dyq_bandwidth_pct_of_copy"] = {
@@ -137,7 +109,7 @@ def bench_shape(n: int, k: int, rows, warmup: int, repeats: int, copy_gbs: float
         print("  ".join(row), flush=True)
 
 
-COLUMNS = ("dyq_a2", "dyq_a4", "dyq_a8", "dyq_a16", "cublas_bf16", "torch_int4_weight_only")
+COLUMNS = tuple(f"dyq_a{bits}" for bits in dyq.VALID_BITS) + ("cublas_bf16", "torch_int4_weight_only")
 
 
 def main() -> int:
@@ -148,12 +120,10 @@ def main() -> int:
     if not torch.cuda.is_available():
         print("bench_cuda: no CUDA device; nothing to time.")
         return 0
-    import dyq  # noqa: F401  (registers torch.ops.dyq)
-
     warmup, repeats = (5, 20) if args.quick else (20, 100)
-    info = device_info()
+    info = environment()
     copy_gbs = copy_bandwidth_gbs(warmup, repeats)
-    print(f"{info['device']} (sm_{info['capability'].replace('.', '')}), driver {info['driver']}, "
+    print(f"{info['gpu']} (sm_{info['capability'].replace('.', '')}), driver {info['driver']}, "
           f"torch {info['torch']}, CUDA {info['cuda']}; device-to-device copy {copy_gbs:.0f} GB/s")
     print("times in microseconds (median)")
     header = ["N x K", "M"] + [f"{c:>9}" for c in COLUMNS]
@@ -162,12 +132,11 @@ def main() -> int:
     shapes = SHAPES[:1] if args.quick else SHAPES
     for n, k in shapes:
         bench_shape(n, k, ROWS, warmup, repeats, copy_gbs, results, table)
-    args.out.mkdir(parents=True, exist_ok=True)
-    name = re.sub(r"[^A-Za-z0-9]+", "_", info["device"]).strip("_").lower()
-    path = args.out / f"cuda_{name}.json"
-    path.write_text(json.dumps({**info, "copy_gbs": copy_gbs, "warmup": warmup, "repeats": repeats,
-                                "group_size": GROUP_SIZE, "shapes": [list(s) for s in shapes], "rows": list(ROWS),
-                                "results": results}, indent=2))
+    name = re.sub(r"[^A-Za-z0-9]+", "_", info["gpu"]).strip("_").lower()
+    path = write_json(args.out / f"cuda_{name}.json",
+                      {"benchmark": "cuda", "environment": info, "copy_gbs": copy_gbs, "warmup": warmup,
+                       "repeats": repeats, "group_size": GROUP_SIZE, "shapes": [list(s) for s in shapes],
+                       "rows": list(ROWS), "results": results})
     print(f"wrote {path}")
     return 0
 

@@ -10,54 +10,26 @@ and < 64 KB for the kinematic evaluation and its history buffers.
 from __future__ import annotations
 
 import argparse
-import json
 import os
-import platform
 import statistics
 import sys
 import time
 
 import numpy as np
-import torch
 
-from dyq.dispatch import DispatchConfig, Hysteresis, KinematicDispatcher, synthetic_trajectory
-from dyq.flag import PrecisionFlag
-from dyq.runtime import DyQRuntime
+import dyq
+from dyq import DispatchConfig, DyQRuntime, Hysteresis, KinematicDispatcher, PrecisionFlag
+from dyq.control.dispatch import HYSTERESIS_MODES, synthetic_trajectory
+from dyq.results import call_times_ns, environment, percentiles_us, write_json
 
 DEFAULT_OUT = os.path.join(os.path.dirname(os.path.abspath(__file__)), "results", "dispatcher.json")
 
 
-def cpu_name() -> str:
-    try:
-        with open("/proc/cpuinfo", encoding="utf-8") as f:
-            for line in f:
-                if line.startswith("model name"):
-                    return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or platform.machine()
-
-
-def percentiles_us(samples_ns: list[int]) -> dict[str, float]:
-    values = np.asarray(samples_ns, dtype=np.float64) / 1e3
-    return {"median_us": float(np.median(values)), "p99_us": float(np.percentile(values, 99))}
-
-
-def time_calls(function, arguments) -> list[int]:
-    clock = time.perf_counter_ns
-    samples = []
-    for argument in arguments:
-        start = clock()
-        function(argument)
-        samples.append(clock() - start)
-    return samples
-
-
 def bench_dispatcher(config: DispatchConfig, actions: np.ndarray) -> dict:
     dispatcher = KinematicDispatcher(config)
-    time_calls(dispatcher.step, actions[: config.history])  # fill the history first
+    call_times_ns(dispatcher.step, actions[: config.history])  # fill the history first
     dispatcher.reset()
-    samples = time_calls(dispatcher.step, actions)
+    samples = call_times_ns(dispatcher.step, actions)
     return {**percentiles_us(samples), "state_bytes": dispatcher.state_bytes}
 
 
@@ -101,21 +73,21 @@ def main(argv: list[str] | None = None) -> int:
     }
     rows = {name: bench_dispatcher(config, actions) for name, config in variants.items()}
 
-    targets = [int(b) for b in np.random.default_rng(0).choice([2, 4, 8, 16], size=args.steps)]
-    hysteresis = {mode: percentiles_us(time_calls(Hysteresis(3, mode).update, targets)) for mode in ("window", "counter")}
+    targets = [int(b) for b in np.random.default_rng(0).choice(dyq.VALID_BITS, size=args.steps)]
+    hysteresis = {mode: percentiles_us(call_times_ns(Hysteresis(3, mode).update, targets)) for mode in HYSTERESIS_MODES}
     flag = PrecisionFlag()
 
     def write_flag(bits):
         flag.bits = bits
 
-    flag_write = percentiles_us(time_calls(write_flag, targets))
+    flag_write = percentiles_us(call_times_ns(write_flag, targets))
     runtime = {
         "no prefill": bench_runtime(actions[: args.runtime_steps], 0.0),
         "5 ms prefill": bench_runtime(actions[: args.runtime_steps], 0.005),
     }
 
-    print(f"dispatcher step ({args.steps} steps, {cpu_name()}, "
-          f"{os.cpu_count()} CPUs, Python {platform.python_version()})")
+    env = environment()
+    print(f"dispatcher step ({args.steps} steps, {env['cpu']}, {env['cores']} CPUs, Python {env['python']})")
     print(f"{'variant':<34}{'median us':>10}{'p99 us':>10}{'state bytes':>13}")
     for name, row in rows.items():
         print(f"{name:<34}{row['median_us']:>10.2f}{row['p99_us']:>10.2f}{row['state_bytes']:>13}")
@@ -133,13 +105,7 @@ def main(argv: list[str] | None = None) -> int:
 
     record = {
         "benchmark": "dispatcher",
-        "device": "cpu",
-        "cpu": cpu_name(),
-        "cpu_count": os.cpu_count(),
-        "platform": platform.platform(),
-        "python": platform.python_version(),
-        "torch": torch.__version__,
-        "numpy": np.__version__,
+        "environment": env,
         "steps": args.steps,
         "config": base.to_dict(),
         "dispatcher_step": rows,
@@ -148,11 +114,7 @@ def main(argv: list[str] | None = None) -> int:
         "runtime": runtime,
         "budget": {"paper_step_us": 500, "paper_state_bytes": 65536, "target_step_us": 20},
     }
-    os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
-    with open(args.out, "w", encoding="utf-8") as f:
-        json.dump(record, f, indent=2)
-        f.write("\n")
-    print(f"\nwrote {args.out}")
+    print(f"\nwrote {write_json(args.out, record)}")
     return 0
 
 

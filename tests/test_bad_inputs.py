@@ -65,7 +65,7 @@ def test_bit_width_is_checked(layer, bits):
         dyq.ops.gemm(x, qweight, scales, 64, bits)
     flag = torch.tensor([bits], dtype=torch.int32)
     with raises("act_bits_flag holds"):
-        dyq.ops.gemm_with_flag(x, qweight, scales, 64, flag)
+        dyq.ops.gemm(x, qweight, scales, 64, flag)
     with raises("act_bits must be"):
         dyq.ops.quantize_activations(x, 64, 16 if bits == 0 else bits)
 
@@ -73,9 +73,9 @@ def test_bit_width_is_checked(layer, bits):
 def test_flag_tensor_is_checked(layer):
     qweight, scales, x = layer
     with raises("act_bits_flag must be an int32"):
-        dyq.ops.gemm_with_flag(x, qweight, scales, 64, torch.tensor([4], dtype=torch.int64))
+        dyq.ops.gemm(x, qweight, scales, 64, torch.tensor([4], dtype=torch.int64))
     with raises("exactly one element"):
-        dyq.ops.gemm_with_flag(x, qweight, scales, 64, torch.tensor([4, 4], dtype=torch.int32))
+        dyq.ops.gemm(x, qweight, scales, 64, torch.tensor([4, 4], dtype=torch.int32))
 
 
 def test_non_contiguous_packed_weight_is_rejected(layer, rng):

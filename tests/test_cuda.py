@@ -7,13 +7,14 @@ import pytest
 import torch
 from helpers import DTYPES, assert_gemm_close, random_activations, random_weight
 
-import dyq  # noqa: F401  (registers torch.ops.dyq)
+import dyq
 from dyq import reference
 
 pytestmark = pytest.mark.cuda
 
-ACT_BITS = (2, 4, 8, 16)
-GROUP_SIZES = (32, 64, 128)
+ACT_BITS = dyq.VALID_BITS  # every registered width
+GROUP_SIZES = dyq.GROUP_SIZES
+QUANTIZED_BITS = dyq.core.precision.QUANTIZED_BITS
 ROWS = (1, 3, 16, 17, 128, 300)  # decode (<= 16) and prefill (> 16) paths, with partial tiles
 N_ODD = 200                      # not a multiple of the 16-row decode block or the 128-column prefill tile
 
@@ -70,7 +71,7 @@ def test_dequantize_weight_is_identical_to_cpu(group_size, rng):
 
 # ---- activations ----------------------------------------------------------------------------------
 
-@pytest.mark.parametrize("act_bits", (2, 4, 8))
+@pytest.mark.parametrize("act_bits", QUANTIZED_BITS)
 @pytest.mark.parametrize("group_size", GROUP_SIZES)
 @pytest.mark.parametrize("dtype", DTYPES)
 def test_quantize_activations_is_identical_to_cpu(act_bits, group_size, dtype, rng):

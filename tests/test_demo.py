@@ -5,7 +5,7 @@ import pytest
 
 pytest.importorskip("transformers")
 
-from dyq import cli  # noqa: E402
+from dyq.apps import cli  # noqa: E402
 
 
 def test_demo_runs_and_reports_every_precision(tmp_path, capsys):

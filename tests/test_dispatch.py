@@ -8,14 +8,17 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from dyq.dispatch import (
+from dyq.control.dispatch import (
     DispatchConfig,
     Hysteresis,
     KinematicDispatcher,
+    ProxyWeight,
     RollingPercentile,
     actions_from_poses,
     allocate_bits,
     fuse_sensitivity,
+    paper_ladder,
+    paper_proxies,
     replay_trajectory,
     synthetic_trajectory,
 )
@@ -39,12 +42,13 @@ def reference_trace(actions, config):
             angular[t] = jerk[t] / nu
         warm = t + 1 >= config.warmup and t >= config.warmup  # magnitudes seen: t + 1, jerks: t
         if warm:
-            m_tilde = np.mean(fineness[max(0, t + 1 - config.macro_window) : t + 1])
-            j_tilde = np.mean(angular[max(1, t + 1 - config.micro_window) : t + 1])
-            lam = config.fusion_weight
+            (_, lam, macro_window), (_, _, micro_window) = [(p.name, p.weight, p.window) for p in config.proxies]
+            m_tilde = np.mean(fineness[max(0, t + 1 - macro_window) : t + 1])
+            j_tilde = np.mean(angular[max(1, t + 1 - micro_window) : t + 1])
             sensitivity[t] = max(0.0, lam * m_tilde + (1 - lam) * j_tilde)
-            edges = [config.theta_2_4, config.theta_4_8, config.theta_fp]
-            targets[t] = (2, 4, 8, 16)[np.searchsorted(edges, sensitivity[t], side="left")]
+            edges = [threshold for threshold, _ in config.ladder]
+            widths = [bits for _, bits in config.ladder] + [16]
+            targets[t] = widths[np.searchsorted(edges, sensitivity[t], side="left")]
     hysteresis = Hysteresis(config.delay_window, config.hysteresis)
     bits = np.array([hysteresis.update(int(b)) for b in targets])
     return {"motion_fineness": fineness, "angular_jerk": angular, "sensitivity": sensitivity,
@@ -62,13 +66,9 @@ def random_actions(seed, steps=80, width=7):
 
 configs = st.builds(
     DispatchConfig,
-    fusion_weight=st.floats(0.05, 0.95),
-    theta_2_4=st.just(0.2),
-    theta_4_8=st.just(0.4),
-    theta_fp=st.floats(0.45, 1.5),
+    proxies=st.builds(paper_proxies, st.floats(0.05, 0.95), st.integers(1, 12), st.integers(1, 6)),
+    ladder=st.builds(paper_ladder, st.just(0.2), st.just(0.4), st.floats(0.45, 1.5)),
     delay_window=st.integers(1, 5),
-    macro_window=st.integers(1, 12),
-    micro_window=st.integers(1, 6),
     percentile=st.floats(50, 100),
     history=st.integers(16, 128),
     warmup=st.integers(1, 16),
@@ -137,7 +137,7 @@ def test_metrics_become_available_in_order(field, value):
 
 
 def test_large_translation_gives_negative_fineness_and_clamped_sensitivity():
-    config = DispatchConfig(fusion_weight=1.0, warmup=5)
+    config = DispatchConfig(proxies=paper_proxies(fusion_weight=1.0), warmup=5)
     dispatcher = KinematicDispatcher(config)
     small = np.array([0.01, 0, 0, 0.1, 0, 0, 0])
     for _ in range(30):
@@ -160,7 +160,7 @@ def test_sensitivity_is_never_negative_and_bits_always_valid(seed):
 def test_rotation_that_never_changes_keeps_full_precision():
     actions = random_actions(11, steps=60)
     actions[:, 3:6] = 0.2  # constant rotation: every jerk is 0, nu_max = 0
-    trace = replay_trajectory(actions, DispatchConfig(fusion_weight=0.5))
+    trace = replay_trajectory(actions, DispatchConfig(proxies=paper_proxies(fusion_weight=0.5)))
     assert (trace["bits"] == 16).all()
     assert np.isnan(trace["sensitivity"]).all()
 
@@ -168,7 +168,7 @@ def test_rotation_that_never_changes_keeps_full_precision():
 def test_rotation_is_ignored_when_lambda_is_one():
     actions = random_actions(11, steps=60)
     actions[:, 3:6] = 0.2
-    trace = replay_trajectory(actions, DispatchConfig(fusion_weight=1.0))
+    trace = replay_trajectory(actions, DispatchConfig(proxies=paper_proxies(fusion_weight=1.0)))
     assert np.isfinite(trace["sensitivity"][20:]).all()
     assert (trace["bits"][20:] < 16).any()
 
@@ -176,7 +176,7 @@ def test_rotation_is_ignored_when_lambda_is_one():
 def test_translation_ignored_when_lambda_is_zero():
     actions = random_actions(12, steps=60)
     actions[:, :3] = 0.0  # no translation: mu_max = 0
-    trace = replay_trajectory(actions, DispatchConfig(fusion_weight=0.0))
+    trace = replay_trajectory(actions, DispatchConfig(proxies=paper_proxies(fusion_weight=0.0)))
     assert np.isnan(trace["motion_fineness"]).all()
     assert np.isfinite(trace["sensitivity"][20:]).all()
 
@@ -276,21 +276,26 @@ def test_config_must_be_a_dispatch_config():
     [(0.0, 2), (0.15, 2), (0.1500001, 4), (0.3, 4), (0.3000001, 8), (0.5, 8), (0.5000001, 16), (7.0, 16)],
 )
 def test_allocation_is_eq6_with_closed_upper_bounds(sensitivity, bits):
-    assert allocate_bits(sensitivity, 0.15, 0.3, 0.5) == bits
+    assert allocate_bits(sensitivity, paper_ladder(0.15, 0.3, 0.5)) == bits
 
 
 def test_equal_thresholds_skip_bit_widths():
-    assert [allocate_bits(s, 0.3, 0.3, 0.3) for s in (0.1, 0.3, 0.31)] == [2, 2, 16]
+    assert [allocate_bits(s, paper_ladder(0.3, 0.3, 0.3)) for s in (0.1, 0.3, 0.31)] == [2, 2, 16]
+
+
+def test_a_custom_ladder_maps_each_rung_and_falls_back_above_the_top():
+    ladder = ((0.1, 2), (0.6, 8))
+    assert [allocate_bits(s, ladder) for s in (0.0, 0.1, 0.2, 0.6, 0.61)] == [2, 2, 8, 8, 16]
 
 
 @given(st.floats(-5, 5), st.floats(-5, 5), st.floats(0, 1))
 def test_fusion_is_the_clamped_convex_combination(m, j, lam):
-    assert fuse_sensitivity(m, j, lam) == pytest.approx(max(0.0, lam * m + (1 - lam) * j), abs=1e-12)
+    assert fuse_sensitivity((m, j), (lam, 1 - lam)) == pytest.approx(max(0.0, lam * m + (1 - lam) * j), abs=1e-12)
 
 
 def test_fusion_ignores_a_missing_metric_of_zero_weight():
-    assert fuse_sensitivity(math.nan, 0.4, 0.0) == 0.4
-    assert fuse_sensitivity(0.4, math.nan, 1.0) == 0.4
+    assert fuse_sensitivity((math.nan, 0.4), (0.0, 1.0)) == 0.4
+    assert fuse_sensitivity((0.4, math.nan), (1.0, 0.0)) == 0.4
 
 
 def test_state_stays_well_under_64_kilobytes_and_stops_growing():
@@ -313,3 +318,26 @@ def test_synthetic_trajectory_runs_coarse_fine_coarse():
     assert translation[:96].mean() > 5 * translation[96:180].mean()
     bits = replay_trajectory(actions)["bits"]
     assert bits[100:180].mean() > bits[200:].mean()  # manipulation runs at higher precision
+
+
+def test_a_config_of_one_proxy_equals_the_pair_with_weights_one_and_zero():
+    actions = random_actions(13, steps=80)
+    pair = replay_trajectory(actions, DispatchConfig(proxies=paper_proxies(fusion_weight=0.0)))
+    alone = replay_trajectory(actions, DispatchConfig(proxies=(ProxyWeight("angular_jerk", 1.0, 5),)))
+    np.testing.assert_array_equal(alone["bits"], pair["bits"])
+    np.testing.assert_array_equal(alone["sensitivity"], pair["sensitivity"])
+    assert np.isnan(alone["motion_fineness"]).all()  # a proxy the config does not list reads NaN
+
+
+@pytest.mark.parametrize("mode", ["window", "counter"])
+def test_no_hysteresis_takes_the_target_at_once_as_k_one_does(mode):
+    actions = random_actions(14, steps=80)
+    none = replay_trajectory(actions, DispatchConfig(hysteresis="none"))
+    np.testing.assert_array_equal(none["bits"], none["target_bits"])
+    np.testing.assert_array_equal(none["bits"], replay_trajectory(actions, DispatchConfig(hysteresis=mode, delay_window=1))["bits"])
+
+
+def test_a_new_width_is_one_rung_of_the_ladder():
+    actions = random_actions(15, steps=80)
+    trace = replay_trajectory(actions, DispatchConfig(ladder=((0.3, 4), (0.5, 8))))
+    assert set(np.unique(trace["target_bits"])) <= {4, 8, 16} and (trace["target_bits"] == 4).any()

@@ -3,8 +3,14 @@ import json
 import numpy as np
 import pytest
 
-from dyq.dispatch import DispatchConfig, replay_trajectory, synthetic_trajectory
-from dyq.dispatch_cli import load_trajectory, main, summarize
+from dyq.control.dispatch import DispatchConfig, replay_trajectory, synthetic_trajectory
+from dyq.apps import cli
+from dyq.apps.dispatch_cli import load_trajectory, summarize
+
+
+def main(argv):
+    """`dyq dispatch ...`"""
+    return cli.main(["dispatch", *argv])
 
 
 def test_demo_then_replay_prints_a_summary_and_writes_the_plot_and_trace(tmp_path, capsys):
@@ -25,7 +31,7 @@ def test_replay_uses_the_config_file(tmp_path, capsys):
     trajectory, config_path = tmp_path / "traj.npz", tmp_path / "cfg.json"
     actions = synthetic_trajectory(100, seed=4)
     np.savez(trajectory, actions=actions)
-    config = DispatchConfig(hysteresis="window", delay_window=5, theta_fp=0.3, theta_4_8=0.2, theta_2_4=0.1)
+    config = DispatchConfig(hysteresis="window", delay_window=5, ladder=((0.1, 2), (0.2, 4), (0.3, 8)))
     config.save(config_path)
     trace_path = tmp_path / "trace.json"
     assert main(["replay", str(trajectory), "--config", str(config_path), "--json", str(trace_path)]) == 0
@@ -86,3 +92,13 @@ def test_pose_input_can_be_chosen_on_the_command_line(tmp_path, capsys):
     record = json.loads(trace_path.read_text())
     assert record["config"]["input"] == "pose"
     assert record["trace"]["bits"] == replay_trajectory(poses, DispatchConfig(input="pose"))["bits"].tolist()
+
+
+def test_python_dash_m_dyq_runs_the_command(tmp_path):
+    import subprocess
+    import sys
+
+    path = tmp_path / "cfg.json"
+    done = subprocess.run([sys.executable, "-m", "dyq", "dispatch", "config", str(path)], capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr
+    assert DispatchConfig.load(path) == DispatchConfig()

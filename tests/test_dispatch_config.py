@@ -6,7 +6,7 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from dyq.dispatch import DispatchConfig
+from dyq.control.dispatch import DispatchConfig, ProxyWeight, paper_ladder, paper_proxies
 
 
 def test_defaults_follow_the_paper_where_it_gives_values():
@@ -81,6 +81,7 @@ BAD_VALUES = [
     ({"history": 0}, ValueError, "history must be an int >= 1"),
     ({"warmup": 0}, ValueError, "warmup must be an int >= 1"),
     ({"history": 8, "warmup": 9}, ValueError, r"warmup must be <= history \(8\)"),
+    ({"ladder": ((0.4, 2), (0.3, 4))}, ValueError, "ladder thresholds must be >= 0 and ascending"),
     ({"hysteresis": "sliding"}, ValueError, "hysteresis must be one of"),
     ({"input": "joints"}, ValueError, "input must be one of"),
     ({"xyz_slice": (3, 3)}, ValueError, "xyz_slice must satisfy 0 <= start < stop"),
@@ -134,7 +135,7 @@ valid_configs = st.builds(
     st.floats(0.1, 100),
     st.integers(1, 4096),
     st.integers(1, 100),
-    st.sampled_from(["window", "counter"]),
+    st.sampled_from(["window", "counter", "none"]),
     st.sampled_from(["action", "pose"]),
 )
 
@@ -142,3 +143,62 @@ valid_configs = st.builds(
 @given(valid_configs)
 def test_any_valid_config_survives_json(config):
     assert DispatchConfig.from_dict(json.loads(json.dumps(config.to_dict()))) == config
+
+
+def test_the_default_is_the_paper_pair_and_ladder():
+    config = DispatchConfig()
+    assert config.proxies == (ProxyWeight("motion_fineness", 0.5, 10), ProxyWeight("angular_jerk", 0.5, 5))
+    assert config.ladder == ((0.15, 2), (0.3, 4), (0.5, 8)) and config.is_paper_form
+
+
+def test_paper_values_edit_the_proxies_and_the_ladder():
+    config = DispatchConfig(fusion_weight=0.7, macro_window=12, theta_4_8=0.2, theta_fp=0.4)
+    assert config.proxies == paper_proxies(0.7, 12, 5)
+    assert config.ladder == paper_ladder(0.15, 0.2, 0.4)
+    assert config.replace(theta_2_4=0.1).ladder == paper_ladder(0.1, 0.2, 0.4)
+
+
+def test_a_file_written_before_the_ladder_loads_and_paper_configs_are_written_the_same_way(tmp_path):
+    old = {"fusion_weight": 0.3, "theta_fp": 0.5, "theta_2_4": 0.15, "theta_4_8": 0.3, "delay_window": 3,
+           "macro_window": 10, "micro_window": 5, "percentile": 95.0, "history": 256, "warmup": 10,
+           "hysteresis": "counter", "input": "action", "xyz_slice": [0, 3], "rot_slice": [3, 6]}
+    path = tmp_path / "old.json"
+    path.write_text(json.dumps(old))
+    config = DispatchConfig.load(path)
+    assert config == DispatchConfig(proxies=paper_proxies(0.3))
+    assert config.to_dict() == old
+
+
+def test_a_single_proxy_and_a_custom_ladder_survive_json():
+    config = DispatchConfig(proxies=(ProxyWeight("angular_jerk", 1.0, 5),), ladder=((0.4, 4),))
+    assert not config.is_paper_form and config.weight("motion_fineness") == 0.0
+    assert math.isnan(config.theta_2_4) and config.theta_4_8 == 0.4 == config.theta_fp
+    assert DispatchConfig.from_dict(json.loads(json.dumps(config.to_dict()))) == config
+
+
+BAD_LADDERS_AND_PROXIES = [
+    ({"proxies": ()}, TypeError, "proxies must be a non-empty sequence"),
+    ({"proxies": (ProxyWeight("motion_fineness", 0.5, 10),)}, ValueError, "proxy weights must be convex"),
+    ({"proxies": paper_proxies(0.5)[:1] * 2}, ValueError, "proxies must name each proxy once"),
+    ({"proxies": (("wrist_speed", 1.0, 3),)}, ValueError, "proxy name must be one of"),
+    ({"proxies": (("motion_fineness", 1.5, 10), ("angular_jerk", -0.5, 5))}, ValueError, "proxy weights must be convex"),
+    ({"proxies": (("motion_fineness", 1.0, 0),)}, ValueError, "motion_fineness window must be an int >= 1"),
+    ({"proxies": (("angular_jerk", 1.0, 5),), "fusion_weight": 0.5}, ValueError, "fusion_weight \\(lambda\\) weighs"),
+    ({"proxies": (("angular_jerk", 1.0, 5),), "macro_window": 4}, ValueError, "macro_window is the window of motion"),
+    ({"ladder": ()}, TypeError, "ladder must be a non-empty sequence"),
+    ({"ladder": ((-0.1, 2),)}, ValueError, "ladder thresholds must be >= 0"),
+    ({"ladder": ((0.1, 4), (0.3, 4))}, ValueError, "ladder bits must increase strictly"),
+    ({"ladder": ((0.1, 8), (0.3, 4))}, ValueError, "ladder bits must increase strictly"),
+    ({"ladder": ((0.1, 16),)}, ValueError, r"ladder\[0\] bits must be a quantized width"),
+    ({"ladder": ((0.1, 3),)}, ValueError, r"ladder\[0\] bits must be one of"),
+    ({"ladder": ((math.inf, 2),)}, ValueError, r"ladder\[0\] threshold must be finite"),
+    ({"ladder": ((0.1, 2, 3),)}, TypeError, r"ladder\[0\] must be a pair"),
+    ({"ladder": ((0.1, 8),), "theta_2_4": 0.05}, ValueError, "theta_2_4 is the threshold of the 2-bit rung"),
+    ({"smoothing": 3}, TypeError, "unexpected keyword argument 'smoothing'"),
+]
+
+
+@pytest.mark.parametrize("changes, error, message", BAD_LADDERS_AND_PROXIES)
+def test_bad_ladders_and_proxies_are_rejected_naming_them(changes, error, message):
+    with pytest.raises(error, match=message):
+        DispatchConfig(**changes)

@@ -4,8 +4,8 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from dyq.dispatch import Hysteresis
-from dyq.flag import VALID_BITS
+from dyq.control.dispatch import Hysteresis
+from dyq import VALID_BITS
 
 MODES = ("window", "counter")
 targets_strategy = st.lists(st.sampled_from(VALID_BITS), min_size=1, max_size=60)

@@ -2,7 +2,8 @@ import numpy as np
 import pytest
 import torch
 
-from dyq.flag import VALID_BITS, PrecisionFlag, check_bits
+from dyq import VALID_BITS, PrecisionFlag
+from dyq.core.precision import check_bits
 
 
 def test_valid_bits_are_the_paper_precisions():

@@ -6,8 +6,9 @@ from helpers import DTYPES, assert_gemm_close, random_activations, random_weight
 import dyq
 from dyq import reference
 
-ACT_BITS = (2, 4, 8, 16)
-GROUP_SIZES = (32, 64, 128)
+ACT_BITS = dyq.VALID_BITS  # every registered width
+GROUP_SIZES = dyq.GROUP_SIZES
+QUANTIZED_BITS = dyq.core.precision.QUANTIZED_BITS
 
 
 @pytest.mark.parametrize("group_size", GROUP_SIZES)
@@ -47,7 +48,7 @@ def test_all_zero_weight_group_dequantizes_to_zero(rng):
     assert torch.equal(dyq.ops.dequantize_weight(qweight, scales, 64)[1, 64:], torch.zeros(64))
 
 
-@pytest.mark.parametrize("act_bits", (2, 4, 8))
+@pytest.mark.parametrize("act_bits", QUANTIZED_BITS)
 @pytest.mark.parametrize("dtype", DTYPES)
 @pytest.mark.parametrize("group_size", GROUP_SIZES)
 def test_quantize_activations_is_bit_identical_to_reference(act_bits, dtype, group_size, rng):
@@ -94,7 +95,7 @@ def test_gemm_with_flag_equals_gemm_at_the_flag_value(act_bits, rng):
     qweight, scales = dyq.ops.quantize_weight(w, 128)
     x = random_activations((7, 256), rng)
     flag = dyq.PrecisionFlag(act_bits)
-    assert torch.equal(dyq.ops.gemm_with_flag(x, qweight, scales, 128, flag.tensor),
+    assert torch.equal(dyq.ops.gemm(x, qweight, scales, 128, flag.tensor),
                        dyq.ops.gemm(x, qweight, scales, 128, act_bits))
 
 
@@ -169,7 +170,7 @@ def test_opcheck_quantizers(rng):
     torch.library.opcheck(torch.ops.dyq.quantize_weight.default, (w, 64))
     qweight, scales = dyq.ops.quantize_weight(w, 64)
     torch.library.opcheck(torch.ops.dyq.dequantize_weight.default, (qweight, scales, 64))
-    for bits in (2, 4, 8):
+    for bits in QUANTIZED_BITS:
         torch.library.opcheck(torch.ops.dyq.quantize_activations.default,
                               (random_activations((2, 3, 128), rng), 64, bits))
 
@@ -187,7 +188,7 @@ def test_gemm_with_flag_compiles_once_for_every_flag_value(rng):
     qweight, scales = dyq.ops.quantize_weight(random_weight(32, 128, rng), 64)
     x = random_activations((3, 128), rng)
     flag = dyq.PrecisionFlag(16)
-    compiled = torch.compile(lambda inp: dyq.ops.gemm_with_flag(inp, qweight, scales, 64, flag.tensor) * 2,
+    compiled = torch.compile(lambda inp: dyq.ops.gemm(inp, qweight, scales, 64, flag.tensor) * 2,
                              backend="eager", fullgraph=True)
     for bits in (16, 2, 8, 4):
         flag.bits = bits

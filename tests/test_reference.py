@@ -59,7 +59,7 @@ def test_kernel_packing_matches_reference_for_any_draw(group_size, seed):
     qweight, scales = dyq.ops.quantize_weight(w, group_size)
     codes, ref_scales = reference.quantize_weight(w, group_size)
     assert torch.equal(qweight, reference.pack_int4(codes)) and torch.equal(scales, ref_scales)
-    for b in (2, 4, 8):
+    for b in dyq.core.precision.QUANTIZED_BITS:
         packed, s, z = dyq.ops.quantize_activations(w, group_size, b)
         c, rs, rz = reference.quantize_activations(w, group_size, b)
         assert torch.equal(packed, reference.pack_activations(c, b)) and torch.equal(s, rs) and torch.equal(z, rz)

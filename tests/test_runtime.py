@@ -7,9 +7,9 @@ import time
 import numpy as np
 import pytest
 
-from dyq.dispatch import DispatchConfig, KinematicDispatcher, replay_trajectory, synthetic_trajectory
-from dyq.flag import PrecisionFlag
-from dyq.runtime import DyQRuntime, StepStats, force_precision
+from dyq.control.dispatch import DispatchConfig, KinematicDispatcher, replay_trajectory, synthetic_trajectory
+from dyq import PrecisionFlag
+from dyq.control.runtime import DyQRuntime, StepStats, force_precision
 
 ACTIONS = synthetic_trajectory(120, seed=3)
 CONFIG = DispatchConfig(warmup=5)

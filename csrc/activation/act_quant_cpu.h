@@ -7,7 +7,7 @@
 
 namespace dyq::cpu {
 
-// x: [m, k] row-major of `dtype`. act_bits in {2, 4, 8}.
+// x: [m, k] row-major of `dtype`. act_bits: a quantized width of common/precision.h (the caller checks it).
 // Writes packed codes uint8 [m, k*act_bits/8], scales fp32 [m, k/group_size], zeros uint8 [m, k/group_size].
 void quantize_activations(const void* x, ScalarType dtype, int64_t m, int64_t k, int group_size, int act_bits,
                           uint8_t* packed, float* scales, uint8_t* zeros);

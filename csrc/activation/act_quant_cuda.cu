@@ -3,6 +3,7 @@
 // group, codes written packed once (8, 4 or 2 bytes per thread).
 #include "activation/act_quant_cuda.cuh"
 #include "activation/act_quant_cuda.h"
+#include "common/precision.h"
 
 namespace dyq::cuda {
 namespace {
@@ -77,14 +78,18 @@ __global__ void __launch_bounds__(kThreads)
     if (blockIdx.x == 0) *out.bits_used = bits_shared;
   }
   __syncthreads();
-  const int act_bits = bits_shared;
-  if (act_bits == kFallbackBits) {
-    if (dtype != ScalarType::kBFloat16) convert_rows_to_bf16(x, dtype, m, k, out.codes);
-  } else if (act_bits == 2 || act_bits == 4 || act_bits == 8) {
-    quantize_rows(x, dtype, m, k, group_size, act_bits,
-                  CodeTarget{out.codes, prepared_row_bytes(k, act_bits), out.scales, out.zeros});
-  }
-  // Any other value: nothing to prepare; the GEMM reads bits_used and writes NaN.
+  dispatch_act_bits(
+      bits_shared,
+      [&](auto bits) {
+        constexpr int kBits = decltype(bits)::value;
+        if constexpr (ActivationTraits<kBits>::kQuantized) {
+          quantize_rows(x, dtype, m, k, group_size, kBits,
+                        CodeTarget{out.codes, prepared_row_bytes(k, kBits), out.scales, out.zeros});
+        } else if (dtype != ScalarType::kBFloat16) {
+          convert_rows_to_bf16(x, dtype, m, k, out.codes);
+        }
+      },
+      [] {});  // any other value: nothing to prepare; the GEMM reads bits_used and writes NaN
 }
 
 unsigned grid_for_runs(int64_t m, int64_t k) {

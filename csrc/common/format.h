@@ -23,15 +23,7 @@ constexpr int kWeightQMin = -8;
 constexpr int kWeightQMax = 7;
 constexpr int kFallbackBits = 16;  // act_bits == 16: the unquantized (BF16) fallback path
 
-DYQ_HOST_DEVICE bool is_valid_group_size(int64_t group_size) {
-  return group_size == 32 || group_size == 64 || group_size == 128;
-}
-
-DYQ_HOST_DEVICE bool is_valid_act_bits(int64_t act_bits) {
-  return act_bits == 2 || act_bits == 4 || act_bits == 8 || act_bits == 16;
-}
-
-// Bytes of packed activation codes for k columns at act_bits (2, 4 or 8).
+// Bytes of packed activation codes for k columns at a quantized act_bits (common/precision.h).
 DYQ_HOST_DEVICE int64_t packed_activation_bytes(int64_t k, int act_bits) { return k * act_bits / 8; }
 
 // Round half to even, the rounding of every quantizer in dyq.

@@ -1,4 +1,4 @@
-// The W4A2 / W4A4 / W4A8 / W4A16 GEMM on the CPU (docs/numerics.md, section 3).
+// The W4A2 / W4A4 / W4A8 / W4A16 GEMM on the CPU (every width of common/precision.h) (docs/numerics.md, section 3).
 #include "gemm/gemm_cpu.h"
 
 #include <Eigen/Core>
@@ -6,6 +6,7 @@
 
 #include "activation/act_quant_cpu_row.h"
 #include "common/cpu_dtype.h"
+#include "common/precision.h"
 #include "gemm/gemm_cpu_avx512.h"
 #include "gemm/gemm_cpu_paths.h"
 #include "parallel/parallel.h"
@@ -20,47 +21,42 @@ using ColMajorMatrix = Eigen::Matrix<float, Eigen::Dynamic, Eigen::Dynamic>;
 constexpr int64_t kPortableRowsPerTask = 64;
 
 // The left operand of every group product: the centered codes q_x - z_x (integers) with their scales
-// s_x, or at act_bits 16 the fp32 copy of x.
+// s_x, or at the fallback width the fp32 copy of x.
 struct PortableActivations {
   RowMajorMatrix values;  // [m, k]
-  RowMajorMatrix scales;  // [m, k / group_size]; empty at act_bits 16
+  RowMajorMatrix scales;  // [m, k / group_size]; empty at the fallback width
 };
 
-template <typename Element>
-PortableActivations prepare_portable_activations(const Element* x, int64_t m, int64_t k, int group_size,
-                                                 int act_bits) {
+template <int kBits, typename Element>
+PortableActivations prepare_portable_activations(const Element* x, int64_t m, int64_t k, int group_size) {
   PortableActivations prepared;
   prepared.values.resize(m, k);
-  if (act_bits == kFallbackBits) {
+  if constexpr (!ActivationTraits<kBits>::kQuantized) {
     parallel_for(0, m, 16, [&](int64_t row_begin, int64_t row_end) {
+      for (int64_t row = row_begin; row < row_end; ++row) load_row_fp32(x + row * k, k, &prepared.values(row, 0));
+    });
+  } else {
+    prepared.scales.resize(m, k / group_size);
+    parallel_for(0, m, 4, [&](int64_t row_begin, int64_t row_end) {
+      std::vector<float> row_fp32(k);
+      std::vector<uint8_t> codes(k);
+      std::vector<ActivationGroupParams> params(k / group_size);
       for (int64_t row = row_begin; row < row_end; ++row) {
-        for (int64_t col = 0; col < k; ++col) prepared.values(row, col) = to_float(x[row * k + col]);
+        quantize_activation_row(x + row * k, k, group_size, kBits, row_fp32.data(), codes.data(), params.data());
+        for (int64_t col = 0; col < k; ++col) {
+          prepared.values(row, col) = static_cast<float>(int{codes[col]} - params[col / group_size].zero);
+        }
+        for (int64_t g = 0; g < k / group_size; ++g) prepared.scales(row, g) = params[g].scale;
       }
     });
-    return prepared;
   }
-  prepared.scales.resize(m, k / group_size);
-  parallel_for(0, m, 4, [&](int64_t row_begin, int64_t row_end) {
-    std::vector<float> row_fp32(k);
-    std::vector<uint8_t> group_codes(group_size);
-    for (int64_t row = row_begin; row < row_end; ++row) {
-      quantize_activation_row(x + row * k, k, group_size, act_bits, row_fp32.data(), group_codes.data(),
-                              [&](int64_t g, ActivationGroupParams params, const uint8_t* codes) {
-                                prepared.scales(row, g) = params.scale;
-                                float* centered = &prepared.values(row, g * group_size);
-                                for (int i = 0; i < group_size; ++i) {
-                                  centered[i] = static_cast<float>(int{codes[i]} - params.zero);
-                                }
-                              });
-    }
-  });
   return prepared;
 }
 
-template <typename Element>
+template <int kBits, typename Element>
 void gemm_portable_typed(const Element* x, const uint8_t* qweight, const float* scales, const Element* bias,
-                         int64_t m, int64_t n, int64_t k, int group_size, int act_bits, Element* out) {
-  const PortableActivations activations = prepare_portable_activations(x, m, k, group_size, act_bits);
+                         int64_t m, int64_t n, int64_t k, int group_size, Element* out) {
+  const PortableActivations activations = prepare_portable_activations<kBits>(x, m, k, group_size);
   const int64_t groups = k / group_size;
   const int64_t tasks = (n + kPortableRowsPerTask - 1) / kPortableRowsPerTask;
   parallel_for(0, tasks, 1, [&](int64_t task_begin, int64_t task_end) {
@@ -84,7 +80,7 @@ void gemm_portable_typed(const Element* x, const uint8_t* qweight, const float* 
           weight_scales(r) = scales[(row_begin + r) * groups + g];
         }
         partial.noalias() = activations.values.middleCols(g * group_size, group_size) * weight_codes.transpose();
-        if (act_bits == kFallbackBits) {
+        if constexpr (!ActivationTraits<kBits>::kQuantized) {
           accumulator.noalias() += partial * weight_scales.asDiagonal();
         } else {
           accumulator.array() +=
@@ -102,15 +98,22 @@ void gemm_portable_typed(const Element* x, const uint8_t* qweight, const float* 
   });
 }
 
+// Calls fn(element, bits) with a value of the C++ element type of `dtype` and the compile-time width.
+template <typename Fn>
+void dispatch_gemm(ScalarType dtype, int act_bits, Fn&& fn) {
+  dispatch_element_type(dtype, [&](auto element) { dispatch_act_bits(act_bits, [&](auto bits) { fn(element, bits); }, [] {}); });
+}
+
 }  // namespace
 
 void gemm_portable(const void* x, ScalarType dtype, const uint8_t* qweight, const float* scales, const void* bias,
                    int64_t m, int64_t n, int64_t k, int group_size, int act_bits, void* out) {
   if (m == 0 || n == 0) return;
-  dispatch_element_type(dtype, [&](auto element) {
+  dispatch_gemm(dtype, act_bits, [&](auto element, auto bits) {
     using Element = decltype(element);
-    gemm_portable_typed(static_cast<const Element*>(x), qweight, scales, static_cast<const Element*>(bias), m, n,
-                        k, group_size, act_bits, static_cast<Element*>(out));
+    gemm_portable_typed<decltype(bits)::value>(static_cast<const Element*>(x), qweight, scales,
+                                               static_cast<const Element*>(bias), m, n, k, group_size,
+                                               static_cast<Element*>(out));
   });
 }
 
@@ -118,10 +121,11 @@ void gemm(const void* x, ScalarType dtype, const uint8_t* qweight, const float* 
           int64_t m, int64_t n, int64_t k, int group_size, int act_bits, void* out) {
 #if defined(DYQ_GEMM_AVX512)
   if (m == 0 || n == 0) return;
-  dispatch_element_type(dtype, [&](auto element) {
+  dispatch_gemm(dtype, act_bits, [&](auto element, auto bits) {
     using Element = decltype(element);
-    avx512::gemm(static_cast<const Element*>(x), qweight, scales, static_cast<const Element*>(bias), m, n, k,
-                 group_size, act_bits, static_cast<Element*>(out));
+    avx512::gemm<decltype(bits)::value>(static_cast<const Element*>(x), qweight, scales,
+                                        static_cast<const Element*>(bias), m, n, k, group_size,
+                                        static_cast<Element*>(out));
   });
 #else
   gemm_portable(x, dtype, qweight, scales, bias, m, n, k, group_size, act_bits, out);

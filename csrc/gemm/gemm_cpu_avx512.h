@@ -26,8 +26,10 @@
 #include <utility>
 #include <vector>
 
+#include "activation/act_quant_cpu_row.h"
 #include "common/cpu_dtype.h"
 #include "common/format.h"
+#include "common/precision.h"
 #include "parallel/parallel.h"
 
 namespace dyq::cpu::avx512 {
@@ -62,61 +64,6 @@ struct alignas(64) QuantizedBlock {
   float scale_lanes[16];   // s_x of that group (0 past k)
 };
 
-template <typename Element>
-void load_row_fp32(const Element* x, int64_t k, float* out) {
-  if constexpr (std::is_same_v<Element, float>) {
-    std::memcpy(out, x, k * sizeof(float));
-  } else {
-    // k is a multiple of 32, so whole vectors of 16.
-    const auto* bits = reinterpret_cast<const uint16_t*>(x);
-    for (int64_t i = 0; i < k; i += 16) {
-      const __m256i halves = _mm256_loadu_si256(reinterpret_cast<const __m256i*>(bits + i));
-      __m512 values;
-      if constexpr (std::is_same_v<Element, Eigen::bfloat16>) {
-        values = _mm512_castsi512_ps(_mm512_slli_epi32(_mm512_cvtepu16_epi32(halves), 16));
-      } else {
-        values = _mm512_cvtph_ps(halves);
-      }
-      _mm512_storeu_ps(out + i, values);
-    }
-  }
-}
-
-// Codes of one row (k a multiple of 32), bit-identical to activation_group_params / activation_code:
-// vdivps and vrndscaleps (round to nearest even) are exact IEEE operations.
-inline void quantize_row_codes(const float* row, int64_t k, int group_size, int act_bits, uint8_t* codes,
-                               ActivationGroupParams* params) {
-  const __m512 zero = _mm512_setzero_ps();
-  const __m512 levels = _mm512_set1_ps(static_cast<float>((1 << act_bits) - 1));
-  for (int64_t g = 0; g < k / group_size; ++g) {
-    const float* v = row + g * group_size;
-    __m512 group_min = zero, group_max = zero;
-    __mmask16 nonfinite = 0;
-    for (int i = 0; i < group_size; i += 16) {
-      const __m512 values = _mm512_loadu_ps(v + i);
-      nonfinite |= _mm512_cmp_ps_mask(_mm512_sub_ps(values, values), zero, _CMP_NEQ_UQ);  // NaN or Inf
-      group_min = _mm512_min_ps(group_min, values);
-      group_max = _mm512_max_ps(group_max, values);
-    }
-    const ActivationGroupParams p = activation_group_params(_mm512_reduce_min_ps(group_min),
-                                                            _mm512_reduce_max_ps(group_max), act_bits, nonfinite != 0);
-    params[g] = p;
-    uint8_t* out = codes + g * group_size;
-    if (nonfinite != 0) {
-      std::memset(out, 0, group_size);
-      continue;
-    }
-    const __m512 scale = _mm512_set1_ps(p.scale);
-    const __m512 zero_point = _mm512_set1_ps(static_cast<float>(p.zero));
-    for (int i = 0; i < group_size; i += 16) {
-      const __m512 ratio = _mm512_div_ps(_mm512_loadu_ps(v + i), scale);
-      const __m512 rounded = _mm512_roundscale_ps(ratio, _MM_FROUND_TO_NEAREST_INT | _MM_FROUND_NO_EXC);
-      const __m512 code = _mm512_min_ps(_mm512_max_ps(_mm512_add_ps(rounded, zero_point), zero), levels);
-      _mm_storeu_si128(reinterpret_cast<__m128i*>(out + i), _mm512_cvtepi32_epi8(_mm512_cvtps_epi32(code)));
-    }
-  }
-}
-
 inline __m512i even_byte_indices() {
   alignas(64) uint8_t idx[64];
   for (int i = 0; i < 64; ++i) idx[i] = static_cast<uint8_t>(2 * i);
@@ -136,8 +83,7 @@ std::vector<QuantizedBlock> quantize_activation_blocks(const Element* x, int64_t
     const __m512i even = even_byte_indices();
     const __m512i odd = _mm512_add_epi8(even, _mm512_set1_epi8(1));
     for (int64_t r = row_begin; r < row_end; ++r) {
-      load_row_fp32(x + r * k, k, row.data());
-      quantize_row_codes(row.data(), k, group_size, act_bits, codes.data(), params.data());
+      quantize_activation_row(x + r * k, k, group_size, act_bits, row.data(), codes.data(), params.data());
       for (int64_t t = 0; t < blocks; ++t) {
         QuantizedBlock& block = quantized[r * blocks + t];
         const __m512i first = _mm512_loadu_si512(codes.data() + t * kBlockColumns);
@@ -394,8 +340,7 @@ PanelActivations<true> quantize_panel_activations(const Element* x, int64_t m, i
     std::vector<float> row(k);
     std::vector<ActivationGroupParams> params(groups);
     for (int64_t r = row_begin; r < row_end; ++r) {
-      load_row_fp32(x + r * k, k, row.data());
-      quantize_row_codes(row.data(), k, group_size, act_bits, a.values.data() + r * k, params.data());
+      quantize_activation_row(x + r * k, k, group_size, act_bits, row.data(), a.values.data() + r * k, params.data());
       for (int64_t g = 0; g < groups; ++g) {
         a.zeros[r * groups + g] = static_cast<float>(params[g].zero);
         a.scales[r * groups + g] = params[g].scale;
@@ -518,35 +463,34 @@ void run_panels(const PanelActivations<kQuantized>& activations, const uint8_t* 
   });
 }
 
-template <typename Element>
+template <int kBits, typename Element>
 void gemm(const Element* x, const uint8_t* qweight, const float* scales, const Element* bias, int64_t m, int64_t n,
-          int64_t k, int group_size, int act_bits, Element* out) {
+          int64_t k, int group_size, Element* out) {
+  constexpr bool kQuantized = ActivationTraits<kBits>::kQuantized;
   if (m >= kPanelMinRows) {
-    if (act_bits == kFallbackBits) {
-      run_panels(convert_panel_activations(x, m, k), qweight, scales, bias, m, n, k, group_size, out);
+    if constexpr (kQuantized) {
+      run_panels(quantize_panel_activations(x, m, k, group_size, kBits), qweight, scales, bias, m, n, k, group_size,
+                 out);
     } else {
-      run_panels(quantize_panel_activations(x, m, k, group_size, act_bits), qweight, scales, bias, m, n, k,
-                 group_size, out);
+      run_panels(convert_panel_activations(x, m, k), qweight, scales, bias, m, n, k, group_size, out);
     }
-    return;
-  }
-  if (act_bits == kFallbackBits) {
+  } else if constexpr (kQuantized) {
+    const int64_t blocks = (k + kBlockColumns - 1) / kBlockColumns;
+    const std::vector<QuantizedBlock> activations = quantize_activation_blocks(x, m, k, group_size, kBits);
+    run_tiles(
+        qweight, scales, bias, m, n, k, group_size, out, [&](int64_t r) { return activations.data() + r * blocks; },
+        [&](auto tile_rows, const uint8_t* weight_row, const float* scales_row, const QuantizedBlock* const* rows,
+            float* sums) {
+          quantized_row_kernel<decltype(tile_rows)::value>(weight_row, scales_row, k, group_size, rows, sums);
+        });
+  } else {
     const std::vector<float> activations = deinterleave_activations(x, m, k);
     run_tiles(
         qweight, scales, bias, m, n, k, group_size, out, [&](int64_t r) { return activations.data() + r * k; },
         [&](auto tile_rows, const uint8_t* weight_row, const float* scales_row, const float* const* rows, float* sums) {
           fp32_row_kernel<decltype(tile_rows)::value>(weight_row, scales_row, k, group_size, rows, sums);
         });
-    return;
   }
-  const int64_t blocks = (k + kBlockColumns - 1) / kBlockColumns;
-  const std::vector<QuantizedBlock> activations = quantize_activation_blocks(x, m, k, group_size, act_bits);
-  run_tiles(
-      qweight, scales, bias, m, n, k, group_size, out, [&](int64_t r) { return activations.data() + r * blocks; },
-      [&](auto tile_rows, const uint8_t* weight_row, const float* scales_row, const QuantizedBlock* const* rows,
-          float* sums) {
-        quantized_row_kernel<decltype(tile_rows)::value>(weight_row, scales_row, k, group_size, rows, sums);
-      });
 }
 
 }  // namespace dyq::cpu::avx512

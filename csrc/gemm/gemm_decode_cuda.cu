@@ -19,6 +19,7 @@
 // BF16 path (A16): each nibble becomes an exact fp32 from its bit pattern; fp32 FMAs against x rounded
 // to bf16 (the rounding the prefill path's bf16 tensor cores impose, so both paths agree).
 #include "activation/act_quant_cuda.cuh"
+#include "common/precision.h"
 #include "gemm/gemm_cuda.h"
 
 namespace dyq::cuda {

@@ -9,8 +9,8 @@
 // K advances in tiles of 128 columns (64 for bf16), double-buffered in shared memory with cp.async
 // (rows padded by 16 bytes against bank conflicts; out-of-range bytes zero-filled).
 //
-// Per bit-width and architecture (one template, chosen at compile time by __CUDA_ARCH__ and at run time
-// by the bit-width the prepare kernel read from the precision flag):
+// Per bit-width and architecture (one template; the MMA kind is the width's trait in common/precision.h
+// for __CUDA_ARCH__, the width the one the prepare kernel read from the precision flag):
 //   A8, and A2/A4 on sm_90 or with G = 32:  m16n8k32 u8.s8. INT4 weights widened to s8 in registers;
 //        activation codes (unsigned) widened to u8.
 //   A4, A2 on sm_80/sm_89 with G >= 64:    m16n8k64 u4.s4, native INT4 tensor cores. Weights used as
@@ -32,6 +32,7 @@
 
 #include "activation/act_quant_cuda.h"
 #include "common/cuda_utils.cuh"
+#include "common/precision.h"
 #include "gemm/gemm_cuda.h"
 #include "gemm/mma_cuda.cuh"
 
@@ -48,12 +49,10 @@ constexpr int kMmaTilesM = kWarpM / 16;
 constexpr int kMmaTilesN = kWarpN / 8;
 constexpr int kSmemPad = 16;
 
-enum class Mma { kU8S8, kU4S4, kBf16 };
-
-template <int kBits, Mma kMma>
+template <int kBits, MmaKind kMma>
 struct TileShape {
   static constexpr int kTileK = kBits == kFallbackBits ? 64 : 128;
-  static constexpr int kStepK = kMma == Mma::kU4S4 ? 64 : 32;
+  static constexpr int kStepK = kMma == MmaKind::kU4S4 ? 64 : 32;
   static constexpr int kARowBytes = kTileK * kBits / 8;
   static constexpr int kAPitch = kARowBytes + kSmemPad;
   static constexpr int kBRowBytes = kTileK / 2;
@@ -62,8 +61,8 @@ struct TileShape {
 };
 
 // Two stages of the largest tile (8-bit codes).
-constexpr int kSmemBytes = 2 * TileShape<8, Mma::kU8S8>::kStageBytes;
-static_assert(2 * TileShape<16, Mma::kBf16>::kStageBytes <= kSmemBytes, "bf16 tiles fit");
+constexpr int kSmemBytes = 2 * TileShape<8, MmaKind::kU8S8>::kStageBytes;
+static_assert(2 * TileShape<16, MmaKind::kBf16>::kStageBytes <= kSmemBytes, "bf16 tiles fit");
 
 __device__ constexpr bool has_int4_tensor_cores() {
 #if defined(__CUDA_ARCH__) && __CUDA_ARCH__ >= 900
@@ -111,10 +110,61 @@ __device__ __forceinline__ uint32_t weight_pair_bf16x2(uint32_t offset_word, int
   return *reinterpret_cast<const uint32_t*>(&value);
 }
 
-template <int kBits, Mma kMma>
+// The fragments of one integer MMA kind (layouts in mma_cuda.cuh): which columns a thread's two
+// k-chunks cover, how its A chunks come from b-bit codes and its B chunks from packed INT4 weights, and
+// the instruction. Both kinds add the thread's weight codes to `weight_sum` for the zero-point term.
+template <MmaKind kKind>
+struct IntegerFragments;
+
+// m16n8k32 u8.s8: thread t covers columns 8t .. 8t + 7 of the step, even ones in chunk 0, odd in chunk 1.
+template <>
+struct IntegerFragments<MmaKind::kU8S8> {
+  static constexpr int kThreadColumns = 8;
+
+  template <int kBits>
+  __device__ __forceinline__ static void load_a(const uint8_t* codes, uint32_t& chunk0, uint32_t& chunk1) {
+    codes8_even_odd<kBits>(codes, chunk0, chunk1);
+  }
+
+  __device__ __forceinline__ static void load_b(const uint8_t* weights, uint32_t& b0, uint32_t& b1, int& weight_sum) {
+    const uint32_t word = *reinterpret_cast<const uint32_t*>(weights);
+    b0 = weight_even_s8x4(word);
+    b1 = weight_odd_s8x4(word);
+    weight_sum = dp4a_sum_s8(b0, dp4a_sum_s8(b1, weight_sum));
+  }
+
+  __device__ __forceinline__ static void mma(int (&c)[4], const uint32_t (&a)[4], uint32_t b0, uint32_t b1) {
+    mma_m16n8k32_u8s8(c, a, b0, b1);
+  }
+};
+
+// m16n8k64 u4.s4: thread t covers columns 16t .. 16t + 15, the first 8 in chunk 0; weights used as loaded.
+template <>
+struct IntegerFragments<MmaKind::kU4S4> {
+  static constexpr int kThreadColumns = 16;
+
+  template <int kBits>
+  __device__ __forceinline__ static void load_a(const uint8_t* codes, uint32_t& chunk0, uint32_t& chunk1) {
+    codes16_nibbles<kBits>(codes, chunk0, chunk1);
+  }
+
+  __device__ __forceinline__ static void load_b(const uint8_t* weights, uint32_t& b0, uint32_t& b1, int& weight_sum) {
+    const uint2 words = *reinterpret_cast<const uint2*>(weights);
+    b0 = words.x;
+    b1 = words.y;
+    weight_sum = dp4a_sum_s8(weight_even_s8x4(words.x), dp4a_sum_s8(weight_odd_s8x4(words.x), weight_sum));
+    weight_sum = dp4a_sum_s8(weight_even_s8x4(words.y), dp4a_sum_s8(weight_odd_s8x4(words.y), weight_sum));
+  }
+
+  __device__ __forceinline__ static void mma(int (&c)[4], const uint32_t (&a)[4], uint32_t b0, uint32_t b1) {
+    mma_m16n8k64_u4s4(c, a, b0, b1);
+  }
+};
+
+template <int kBits, MmaKind kMma>
 __device__ void prefill_block(const GemmArgs& a, const PreparedActivations& prepared, uint8_t* smem) {
   using Shape = TileShape<kBits, kMma>;
-  constexpr bool kInteger = kMma != Mma::kBf16;
+  constexpr bool kInteger = kMma != MmaKind::kBf16;
   constexpr int kStepsPerTile = Shape::kTileK / Shape::kStepK;
   using GroupAcc = std::conditional_t<kInteger, int, float>;
 
@@ -234,45 +284,26 @@ __device__ void prefill_block(const GemmArgs& a, const PreparedActivations& prep
   auto mma_step = [&](int stage, int col) {
     const uint8_t* tile_a = stage_a(stage);
     const uint8_t* tile_b = stage_b(stage);
-    if constexpr (kMma == Mma::kU8S8) {
+    if constexpr (kInteger) {
+      using Fragments = IntegerFragments<kMma>;
+      const int thread_col = col + Fragments::kThreadColumns * t;
       uint32_t frag_a[kMmaTilesM][4];
 #pragma unroll
       for (int i = 0; i < kMmaTilesM; ++i) {
 #pragma unroll
         for (int h = 0; h < 2; ++h) {
           const int row = warp_row + i * 16 + g + 8 * h;
-          codes8_even_odd<kBits>(tile_a + row * Shape::kAPitch + (col + 8 * t) * kBits / 8, frag_a[i][h],
-                                 frag_a[i][2 + h]);
+          Fragments::template load_a<kBits>(tile_a + row * Shape::kAPitch + thread_col * kBits / 8, frag_a[i][h],
+                                            frag_a[i][2 + h]);
         }
       }
 #pragma unroll
       for (int j = 0; j < kMmaTilesN; ++j) {
         const int n = warp_col + j * 8 + g;
-        const uint32_t word = *reinterpret_cast<const uint32_t*>(tile_b + n * Shape::kBPitch + (col + 8 * t) / 2);
-        const uint32_t b0 = weight_even_s8x4(word), b1 = weight_odd_s8x4(word);
-        weight_sum[j] = dp4a_sum_s8(b0, dp4a_sum_s8(b1, weight_sum[j]));
+        uint32_t b0, b1;
+        Fragments::load_b(tile_b + n * Shape::kBPitch + thread_col / 2, b0, b1, weight_sum[j]);
 #pragma unroll
-        for (int i = 0; i < kMmaTilesM; ++i) mma_m16n8k32_u8s8(group_acc[i][j], frag_a[i], b0, b1);
-      }
-    } else if constexpr (kMma == Mma::kU4S4) {
-      uint32_t frag_a[kMmaTilesM][4];
-#pragma unroll
-      for (int i = 0; i < kMmaTilesM; ++i) {
-#pragma unroll
-        for (int h = 0; h < 2; ++h) {
-          const int row = warp_row + i * 16 + g + 8 * h;
-          codes16_nibbles<kBits>(tile_a + row * Shape::kAPitch + (col + 16 * t) * kBits / 8, frag_a[i][h],
-                                 frag_a[i][2 + h]);
-        }
-      }
-#pragma unroll
-      for (int j = 0; j < kMmaTilesN; ++j) {
-        const int n = warp_col + j * 8 + g;
-        const uint2 words = *reinterpret_cast<const uint2*>(tile_b + n * Shape::kBPitch + (col + 16 * t) / 2);
-        weight_sum[j] = dp4a_sum_s8(weight_even_s8x4(words.x), dp4a_sum_s8(weight_odd_s8x4(words.x), weight_sum[j]));
-        weight_sum[j] = dp4a_sum_s8(weight_even_s8x4(words.y), dp4a_sum_s8(weight_odd_s8x4(words.y), weight_sum[j]));
-#pragma unroll
-        for (int i = 0; i < kMmaTilesM; ++i) mma_m16n8k64_u4s4(group_acc[i][j], frag_a[i], words.x, words.y);
+        for (int i = 0; i < kMmaTilesM; ++i) Fragments::mma(group_acc[i][j], frag_a[i], b0, b1);
       }
     } else {
       // Two k16 MMAs over columns col + 8t .. +7: step 0 pairs (0,4) and (1,5), step 1 (2,6) and (3,7).
@@ -346,16 +377,21 @@ __device__ void prefill_block(const GemmArgs& a, const PreparedActivations& prep
   }
 }
 
+// The MMA kind of a width on the architecture being compiled (common/precision.h).
 template <int kBits>
-__device__ void prefill_block_integer(const GemmArgs& a, const PreparedActivations& prepared, uint8_t* smem) {
-  if constexpr (kBits <= 4 && has_int4_tensor_cores()) {
+__device__ void prefill_block_for_width(const GemmArgs& a, const PreparedActivations& prepared, uint8_t* smem) {
+  using Traits = ActivationTraits<kBits>;
+  constexpr MmaKind kMma = has_int4_tensor_cores() ? Traits::kMmaWithInt4Cores : Traits::kMmaWithoutInt4Cores;
+  if constexpr (kMma == MmaKind::kU4S4) {
     // A k64 step must stay inside one group.
     if (a.group_size >= 64) {
-      prefill_block<kBits, Mma::kU4S4>(a, prepared, smem);
+      prefill_block<kBits, MmaKind::kU4S4>(a, prepared, smem);
       return;
     }
+    prefill_block<kBits, MmaKind::kU8S8>(a, prepared, smem);
+  } else {
+    prefill_block<kBits, kMma>(a, prepared, smem);
   }
-  prefill_block<kBits, Mma::kU8S8>(a, prepared, smem);
 }
 
 __device__ void fill_block_with_nan(const GemmArgs& a) {
@@ -370,13 +406,9 @@ __device__ void fill_block_with_nan(const GemmArgs& a) {
 // of one GEMM use the same value even if the flag were rewritten in between.
 __global__ void __launch_bounds__(kThreads) gemm_prefill_kernel(const GemmArgs a, const PreparedActivations prepared) {
   __shared__ __align__(16) uint8_t smem[kSmemBytes];
-  switch (*prepared.bits_used) {
-    case 2: prefill_block_integer<2>(a, prepared, smem); break;
-    case 4: prefill_block_integer<4>(a, prepared, smem); break;
-    case 8: prefill_block_integer<8>(a, prepared, smem); break;
-    case kFallbackBits: prefill_block<kFallbackBits, Mma::kBf16>(a, prepared, smem); break;
-    default: fill_block_with_nan(a); break;
-  }
+  dispatch_act_bits(
+      *prepared.bits_used, [&](auto bits) { prefill_block_for_width<decltype(bits)::value>(a, prepared, smem); },
+      [&] { fill_block_with_nan(a); });
 }
 
 constexpr int64_t kWorkspaceAlign = 256;

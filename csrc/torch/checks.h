@@ -7,11 +7,13 @@
 #include <c10/util/Exception.h>
 
 #include <optional>
+#include <string>
 #include <tuple>
 #include <utility>
 #include <vector>
 
 #include "common/format.h"
+#include "common/precision.h"
 
 namespace dyq {
 
@@ -28,13 +30,33 @@ inline ScalarType to_dyq_dtype(at::ScalarType t) {
   }
 }
 
-inline void check_group_size(int64_t group_size) {
-  TORCH_CHECK(is_valid_group_size(group_size), "dyq: group_size must be 32, 64 or 128, got ", group_size);
+// "2, 4, 8 or 16": the values of a registry list, for error messages.
+template <int... kValues>
+std::string spelled_out(IntList<kValues...>, bool skip_fallback = false) {
+  std::string text;
+  int remaining = 0;
+  ((remaining += !(skip_fallback && kValues == kFallbackBits)), ...);
+  for (const int value : {kValues...}) {
+    if (skip_fallback && value == kFallbackBits) continue;
+    --remaining;
+    text += std::to_string(value) + (remaining > 1 ? ", " : (remaining == 1 ? " or " : ""));
+  }
+  return text;
 }
 
+inline std::string registered_act_bits_text(bool quantized_only = false) {
+  return spelled_out(RegisteredActivationBits(), quantized_only);
+}
+
+inline void check_group_size(int64_t group_size) {
+  TORCH_CHECK(is_valid_group_size(group_size), "dyq: group_size must be ", spelled_out(RegisteredGroupSizes()),
+              ", got ", group_size);
+}
+
+// allow_fallback = false: only the quantized widths (the standalone activation quantizer).
 inline void check_act_bits(int64_t act_bits, bool allow_fallback = true) {
-  TORCH_CHECK(act_bits == 2 || act_bits == 4 || act_bits == 8 || (allow_fallback && act_bits == 16),
-              "dyq: act_bits must be ", allow_fallback ? "2, 4, 8 or 16" : "2, 4 or 8", ", got ", act_bits);
+  TORCH_CHECK(is_valid_act_bits(act_bits) && (allow_fallback || act_bits != kFallbackBits), "dyq: act_bits must be ",
+              registered_act_bits_text(!allow_fallback), ", got ", act_bits);
 }
 
 inline void check_k_divisible(int64_t k, int64_t group_size, const char* what) {

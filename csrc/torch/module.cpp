@@ -1,7 +1,60 @@
-// `import dyq._C` loads this library, whose static initializers register the dyq ops with torch.
+// `import dyq._C` loads this library, whose static initializers register the dyq ops with torch. The
+// module also carries the precision registry (common/precision.h) for Python, and the GEMM width
+// counters (torch/width_counts.h).
 #include <Python.h>
 
+#include "common/precision.h"
+#include "torch/width_counts.h"
+
+namespace {
+
+template <int... kValues>
+PyObject* int_tuple(dyq::IntList<kValues...>) {
+  PyObject* tuple = PyTuple_New(sizeof...(kValues));
+  int index = 0;
+  (PyTuple_SET_ITEM(tuple, index++, PyLong_FromLong(kValues)), ...);
+  return tuple;
+}
+
+// (bits, codes per byte, levels) of each registered width: 0 codes and levels for the fallback.
+template <int... kBits>
+PyObject* traits_tuple(dyq::IntList<kBits...>) {
+  PyObject* tuple = PyTuple_New(sizeof...(kBits));
+  int index = 0;
+  (PyTuple_SET_ITEM(tuple, index++,
+                    Py_BuildValue("(iii)", kBits, dyq::ActivationTraits<kBits>::kCodesPerByte,
+                                  dyq::ActivationTraits<kBits>::kLevels)),
+   ...);
+  return tuple;
+}
+
+PyObject* gemm_width_counts(PyObject*, PyObject*) {
+  const auto counts = dyq::gemm_width_counts();
+  PyObject* tuple = PyTuple_New(dyq::kNumActivationWidths);
+  for (int i = 0; i < dyq::kNumActivationWidths; ++i) PyTuple_SET_ITEM(tuple, i, PyLong_FromLongLong(counts[i]));
+  return tuple;
+}
+
+PyObject* reset_gemm_width_counts(PyObject*, PyObject*) {
+  dyq::reset_gemm_width_counts();
+  Py_RETURN_NONE;
+}
+
+PyMethodDef methods[] = {
+    {"gemm_width_counts", gemm_width_counts, METH_NOARGS,
+     "GEMM calls of this process per registered activation width, in the order of ACTIVATION_BITS."},
+    {"reset_gemm_width_counts", reset_gemm_width_counts, METH_NOARGS, "Set every GEMM width count to 0."},
+    {nullptr, nullptr, 0, nullptr}};
+
+}  // namespace
+
 extern "C" PyObject* PyInit__C(void) {
-  static struct PyModuleDef module = {PyModuleDef_HEAD_INIT, "_C", "dyq's compiled operators", -1, nullptr};
-  return PyModule_Create(&module);
+  static struct PyModuleDef module = {PyModuleDef_HEAD_INIT, "_C", "dyq's compiled operators", -1, methods};
+  PyObject* m = PyModule_Create(&module);
+  if (m == nullptr) return nullptr;
+  PyModule_AddObject(m, "ACTIVATION_BITS", int_tuple(dyq::RegisteredActivationBits()));
+  PyModule_AddObject(m, "ACTIVATION_TRAITS", traits_tuple(dyq::RegisteredActivationBits()));
+  PyModule_AddObject(m, "GROUP_SIZES", int_tuple(dyq::RegisteredGroupSizes()));
+  PyModule_AddIntConstant(m, "FALLBACK_BITS", dyq::kFallbackBits);
+  return m;
 }

@@ -8,6 +8,7 @@
 #include "gemm/gemm_cpu.h"
 #include "parallel/parallel.h"
 #include "torch/checks.h"
+#include "torch/gemm_op.h"
 #include "weight/weight_pack_cpu.h"
 
 namespace dyq {
@@ -56,40 +57,40 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> quantize_activations_cpu(const at
   return {packed, scales, zeros};
 }
 
-at::Tensor gemm_cpu_impl(const at::Tensor& x, const at::Tensor& qweight, const at::Tensor& scales, int64_t group_size,
-                         int64_t act_bits, const std::optional<at::Tensor>& bias) {
-  const int64_t n = qweight.size(0), k = qweight.size(1) * 2;
-  at::Tensor out = at::empty(gemm_output_shape(x, n), x.options());
-  const int64_t m = n == 0 ? 0 : out.numel() / n;
-  if (m == 0 || n == 0) return out;
-  if (k == 0) {  // an empty sum: the bias alone
-    return bias.has_value() ? out.copy_(bias->expand_as(out)) : out.zero_();
+struct CpuGemm {
+  using Precision = int64_t;  // the CPU kernels take the width itself
+
+  static Precision fixed(int64_t act_bits) { return act_bits; }
+
+  static std::pair<Precision, int64_t> from_flag(const at::Tensor& flag, const at::Tensor&) {
+    TORCH_CHECK(flag.device().is_cpu(), "dyq: act_bits_flag must be a CPU (host) tensor for CPU inputs, got ",
+                flag.device());
+    const int64_t act_bits = flag.item<int32_t>();
+    TORCH_CHECK(is_valid_act_bits(act_bits), "dyq: act_bits_flag holds ", act_bits, "; expected ",
+                registered_act_bits_text());
+    return {act_bits, act_bits};
   }
-  const at::Tensor xc = x.contiguous();
-  const at::Tensor bias_c = bias.has_value() ? bias->contiguous() : at::Tensor();
-  cpu::gemm(xc.const_data_ptr(), to_dyq_dtype(x.scalar_type()), qweight.const_data_ptr<uint8_t>(),
-            scales.const_data_ptr<float>(), bias_c.defined() ? bias_c.const_data_ptr() : nullptr, m, n, k,
-            static_cast<int>(group_size), static_cast<int>(act_bits), out.mutable_data_ptr());
-  return out;
-}
+
+  static void run(const at::Tensor& x, const at::Tensor& qweight, const at::Tensor& scales, int64_t group_size,
+                  Precision act_bits, const std::optional<at::Tensor>& bias, at::Tensor& out) {
+    const int64_t n = qweight.size(0), k = qweight.size(1) * 2;
+    const at::Tensor xc = x.contiguous();
+    const at::Tensor bias_c = bias.has_value() ? bias->contiguous() : at::Tensor();
+    cpu::gemm(xc.const_data_ptr(), to_dyq_dtype(x.scalar_type()), qweight.const_data_ptr<uint8_t>(),
+              scales.const_data_ptr<float>(), bias_c.defined() ? bias_c.const_data_ptr() : nullptr, out.numel() / n,
+              n, k, static_cast<int>(group_size), static_cast<int>(act_bits), out.mutable_data_ptr());
+  }
+};
 
 at::Tensor gemm_cpu(const at::Tensor& x, const at::Tensor& qweight, const at::Tensor& scales, int64_t group_size,
                     int64_t act_bits, const std::optional<at::Tensor>& bias) {
-  check_gemm_args(x, qweight, scales, group_size, bias);
-  check_act_bits(act_bits);
-  return gemm_cpu_impl(x, qweight, scales, group_size, act_bits, bias);
+  return gemm_op<CpuGemm>(x, qweight, scales, group_size, fixed_act_bits(act_bits), bias);
 }
 
 at::Tensor gemm_with_flag_cpu(const at::Tensor& x, const at::Tensor& qweight, const at::Tensor& scales,
                               int64_t group_size, const at::Tensor& act_bits_flag,
                               const std::optional<at::Tensor>& bias) {
-  check_gemm_args(x, qweight, scales, group_size, bias);
-  check_flag_tensor(act_bits_flag);
-  TORCH_CHECK(act_bits_flag.device().is_cpu(), "dyq: act_bits_flag must be a CPU (host) tensor for CPU inputs, got ",
-              act_bits_flag.device());
-  const int64_t act_bits = act_bits_flag.item<int32_t>();
-  TORCH_CHECK(is_valid_act_bits(act_bits), "dyq: act_bits_flag holds ", act_bits, "; expected 2, 4, 8 or 16");
-  return gemm_cpu_impl(x, qweight, scales, group_size, act_bits, bias);
+  return gemm_op<CpuGemm>(x, qweight, scales, group_size, flag_act_bits(act_bits_flag), bias);
 }
 
 }  // namespace

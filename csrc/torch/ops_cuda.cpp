@@ -11,6 +11,7 @@
 #include "activation/act_quant_cuda.h"
 #include "gemm/gemm_cuda.h"
 #include "torch/checks.h"
+#include "torch/gemm_op.h"
 #include "weight/weight_pack_cuda.h"
 
 namespace dyq {
@@ -74,46 +75,6 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> quantize_activations_cuda(const a
   return {packed, scales, zeros};
 }
 
-at::Tensor gemm_cuda_impl(const at::Tensor& x, const at::Tensor& qweight, const at::Tensor& scales, int64_t group_size,
-                          cuda::Precision precision, const std::optional<at::Tensor>& bias) {
-  const c10::cuda::CUDAGuard guard(x.device());
-  const int64_t n = qweight.size(0), k = qweight.size(1) * 2;
-  at::Tensor out = at::empty(gemm_output_shape(x, n), x.options());
-  const at::Tensor xc = aligned_contiguous(x);
-  const at::Tensor qweight_c = aligned_contiguous(qweight);
-  // Rows from the leading dimensions, not numel / k: with K = 0 (no groups) the output is [..., M, N] of
-  // zeros (+ bias), and the kernels write it; returning early would leave it uninitialized.
-  const int64_t m = out.numel() == 0 ? 0 : out.numel() / n;
-  if (m == 0 || n == 0) return out;
-  const at::Tensor bias_c = bias.has_value() ? bias->contiguous() : at::Tensor();
-  // Scratch from the caching allocator: stream-ordered, and drawn from the graph's pool under capture.
-  const int64_t workspace_bytes = cuda::gemm_workspace_bytes(m, k, static_cast<int>(group_size));
-  const at::Tensor workspace =
-      workspace_bytes > 0 ? at::empty({workspace_bytes}, x.options().dtype(at::kByte)) : at::Tensor();
-  cuda::GemmArgs args{};
-  args.x = xc.const_data_ptr();
-  args.dtype = to_dyq_dtype(x.scalar_type());
-  args.qweight = qweight_c.const_data_ptr<uint8_t>();
-  args.scales = scales.const_data_ptr<float>();
-  args.bias = bias_c.defined() ? bias_c.const_data_ptr() : nullptr;
-  args.m = m;
-  args.n = n;
-  args.k = k;
-  args.group_size = static_cast<int>(group_size);
-  args.precision = precision;
-  args.workspace = workspace.defined() ? workspace.mutable_data_ptr() : nullptr;
-  args.out = out.mutable_data_ptr();
-  check_launch(cuda::gemm(args, at::cuda::getCurrentCUDAStream()), "gemm");
-  return out;
-}
-
-at::Tensor gemm_cuda(const at::Tensor& x, const at::Tensor& qweight, const at::Tensor& scales, int64_t group_size,
-                     int64_t act_bits, const std::optional<at::Tensor>& bias) {
-  check_gemm_args(x, qweight, scales, group_size, bias);
-  check_act_bits(act_bits);
-  return gemm_cuda_impl(x, qweight, scales, group_size, cuda::fixed_precision(static_cast<int>(act_bits)), bias);
-}
-
 // The address the kernels read the flag at. Pinned host memory is mapped into the device's address
 // space (unified addressing), so the kernel reads the host's latest write with no copy; a CUDA int32
 // on x's device is read in place.
@@ -133,16 +94,58 @@ const int32_t* device_visible_flag(const at::Tensor& flag, const at::Device& dev
   return static_cast<const int32_t*>(device_ptr);
 }
 
+struct CudaGemm {
+  using Precision = cuda::Precision;
+
+  static Precision fixed(int64_t act_bits) { return cuda::fixed_precision(static_cast<int>(act_bits)); }
+
+  // The value is not validated here: the kernels read it when they run (a NaN output marks an invalid
+  // one). The width counted is the host's read of a pinned flag at launch (no synchronization); a flag
+  // in device memory, or a launch replayed from a CUDA graph, is not counted (docs/cuda.md).
+  static std::pair<Precision, int64_t> from_flag(const at::Tensor& flag, const at::Tensor& x) {
+    check_on_cuda(x, "x");
+    const c10::cuda::CUDAGuard guard(x.device());
+    const int64_t host_bits = flag.is_cuda() ? 0 : *static_cast<const volatile int32_t*>(flag.const_data_ptr());
+    return {cuda::flag_precision(device_visible_flag(flag, x.device())), host_bits};
+  }
+
+  static void run(const at::Tensor& x, const at::Tensor& qweight, const at::Tensor& scales, int64_t group_size,
+                  Precision precision, const std::optional<at::Tensor>& bias, at::Tensor& out) {
+    const c10::cuda::CUDAGuard guard(x.device());
+    const int64_t n = qweight.size(0), k = qweight.size(1) * 2, m = out.numel() / n;
+    const at::Tensor xc = aligned_contiguous(x);
+    const at::Tensor qweight_c = aligned_contiguous(qweight);
+    const at::Tensor bias_c = bias.has_value() ? bias->contiguous() : at::Tensor();
+    // Scratch from the caching allocator: stream-ordered, and drawn from the graph's pool under capture.
+    const int64_t workspace_bytes = cuda::gemm_workspace_bytes(m, k, static_cast<int>(group_size));
+    const at::Tensor workspace =
+        workspace_bytes > 0 ? at::empty({workspace_bytes}, x.options().dtype(at::kByte)) : at::Tensor();
+    cuda::GemmArgs args{};
+    args.x = xc.const_data_ptr();
+    args.dtype = to_dyq_dtype(x.scalar_type());
+    args.qweight = qweight_c.const_data_ptr<uint8_t>();
+    args.scales = scales.const_data_ptr<float>();
+    args.bias = bias_c.defined() ? bias_c.const_data_ptr() : nullptr;
+    args.m = m;
+    args.n = n;
+    args.k = k;
+    args.group_size = static_cast<int>(group_size);
+    args.precision = precision;
+    args.workspace = workspace.defined() ? workspace.mutable_data_ptr() : nullptr;
+    args.out = out.mutable_data_ptr();
+    check_launch(cuda::gemm(args, at::cuda::getCurrentCUDAStream()), "gemm");
+  }
+};
+
+at::Tensor gemm_cuda(const at::Tensor& x, const at::Tensor& qweight, const at::Tensor& scales, int64_t group_size,
+                     int64_t act_bits, const std::optional<at::Tensor>& bias) {
+  return gemm_op<CudaGemm>(x, qweight, scales, group_size, fixed_act_bits(act_bits), bias);
+}
+
 at::Tensor gemm_with_flag_cuda(const at::Tensor& x, const at::Tensor& qweight, const at::Tensor& scales,
                                int64_t group_size, const at::Tensor& act_bits_flag,
                                const std::optional<at::Tensor>& bias) {
-  check_gemm_args(x, qweight, scales, group_size, bias);
-  check_flag_tensor(act_bits_flag);
-  check_on_cuda(x, "x");
-  // The value is not read here: the kernels read it when they run (a NaN output marks an invalid one).
-  const c10::cuda::CUDAGuard guard(x.device());
-  return gemm_cuda_impl(x, qweight, scales, group_size,
-                        cuda::flag_precision(device_visible_flag(act_bits_flag, x.device())), bias);
+  return gemm_op<CudaGemm>(x, qweight, scales, group_size, flag_act_bits(act_bits_flag), bias);
 }
 
 }  // namespace

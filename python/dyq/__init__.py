@@ -5,13 +5,17 @@ Quick start::
     import dyq
     report = dyq.quantize_model(model)          # nn.Linear -> DyQLinear (INT4 weights)
     dyq.set_precision(model, 4)                 # W4A4 for the next steps
+
+Layout: ``dyq.core`` (kernel API), ``dyq.control`` (dispatcher, flag, runtime), ``dyq.apps`` (command
+line, demo); every public name is importable from ``dyq`` itself.
 """
-from . import ops, reference
-from .dispatch import DispatchConfig, Hysteresis, KinematicDispatcher
-from .flag import VALID_BITS, PrecisionFlag
-from .linear import DyQLinear
-from .quantize import QuantizationReport, bind_flag, quantize_model, set_precision
-from .runtime import DyQRuntime, StepStats, force_precision
+from .control.dispatch import DispatchConfig, Hysteresis, KinematicDispatcher, ProxyWeight
+from .control.flag import PrecisionFlag
+from .control.runtime import DyQRuntime, StepStats, force_precision
+from .core import ops, reference
+from .core.linear import DyQLinear
+from .core.precision import FALLBACK_BITS, GROUP_SIZES, VALID_BITS
+from .core.quantize import QuantizationReport, bind_flag, quantize_model, set_precision
 
 __version__ = "0.1.0"
 
@@ -23,6 +27,9 @@ __all__ = [
     "StepStats",
     "force_precision",
     "DyQLinear",
+    "FALLBACK_BITS",
+    "GROUP_SIZES",
+    "ProxyWeight",
     "PrecisionFlag",
     "QuantizationReport",
     "VALID_BITS",

@@ -6,6 +6,7 @@ import json
 import os
 import platform
 import statistics
+import subprocess
 import time
 from pathlib import Path
 
@@ -41,9 +42,19 @@ def environment() -> dict:
         "time": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
     }
     if torch.cuda.is_available():
-        env["gpu"] = torch.cuda.get_device_name()
-        env["cuda"] = torch.version.cuda
+        props = torch.cuda.get_device_properties(0)
+        env.update(gpu=props.name, capability=f"{props.major}.{props.minor}", sms=props.multi_processor_count,
+                   l2_bytes=props.L2_cache_size, driver=_driver_version(), cuda=torch.version.cuda)
     return env
+
+
+def _driver_version() -> str:
+    try:
+        out = subprocess.run(["nvidia-smi", "--query-gpu=driver_version", "--format=csv,noheader"],
+                             capture_output=True, text=True, check=False).stdout
+        return out.strip().splitlines()[0]
+    except (OSError, IndexError):
+        return ""
 
 
 def median_ms(fn, *, warmup: int = 3, repeats: int = 15, min_seconds: float = 0.0) -> float:
@@ -57,6 +68,39 @@ def median_ms(fn, *, warmup: int = 3, repeats: int = 15, min_seconds: float = 0.
         fn()
         times.append((time.perf_counter() - t0) * 1e3)
     return statistics.median(times)
+
+
+def cuda_median_ms(fn, *, warmup: int, repeats: int) -> float:
+    """Median milliseconds of fn() over ``repeats`` runs, each bracketed by CUDA events."""
+    for _ in range(warmup):
+        fn()
+    times = []
+    for _ in range(repeats):
+        start, end = torch.cuda.Event(enable_timing=True), torch.cuda.Event(enable_timing=True)
+        start.record()
+        fn()
+        end.record()
+        end.synchronize()
+        times.append(start.elapsed_time(end))
+    return statistics.median(times)
+
+
+def call_times_ns(fn, arguments) -> list[int]:
+    """Wall time of each single call fn(argument), in nanoseconds (calls too short for median_ms)."""
+    clock = time.perf_counter_ns
+    samples = []
+    for argument in arguments:
+        start = clock()
+        fn(argument)
+        samples.append(clock() - start)
+    return samples
+
+
+def percentiles_us(samples_ns) -> dict[str, float]:
+    """Median and 99th percentile of nanosecond samples, in microseconds."""
+    ordered = sorted(samples_ns)
+    return {"median_us": statistics.median(ordered) / 1e3,
+            "p99_us": statistics.quantiles(ordered, n=100, method="inclusive")[98] / 1e3}
 
 
 def print_table(headers: list[str], rows: list[list], title: str = "") -> None:

@@ -4,15 +4,15 @@ from __future__ import annotations
 import torch
 from torch import nn
 
+from ..control.flag import PrecisionFlag
 from . import ops
-from .flag import PrecisionFlag, check_bits
+from .precision import check_bits, check_group_size
 
 ACTIVATION_DTYPES = (torch.float32, torch.bfloat16, torch.float16)
 
 
 def _check_group_size(in_features: int, group_size: int) -> None:
-    if group_size not in ops.GROUP_SIZES:
-        raise ValueError(f"group_size must be one of {ops.GROUP_SIZES}, got {group_size!r}")
+    check_group_size(group_size)
     if in_features % group_size != 0:
         raise ValueError(f"in_features = {in_features} is not a multiple of group_size = {group_size}")
 
@@ -95,9 +95,8 @@ class DyQLinear(nn.Module):
         bias = self.bias
         if bias is not None and bias.dtype != x.dtype:
             bias = bias.to(x.dtype)
-        if self.flag is not None:
-            return ops.gemm_with_flag(x, self.qweight, self.scales, self.group_size, self.flag.tensor, bias)
-        return ops.gemm(x, self.qweight, self.scales, self.group_size, self.act_bits, bias)
+        act_bits = self.flag.tensor if self.flag is not None else self.act_bits
+        return ops.gemm(x, self.qweight, self.scales, self.group_size, act_bits, bias)
 
     # -- module plumbing ---------------------------------------------------------------------------------------
     def _apply(self, fn, recurse=True):

@@ -1,8 +1,8 @@
-"""Command line for the kinematic dispatcher: replay a trajectory, write a demo one, write a config.
+"""``dyq dispatch``: replay a trajectory through the dispatcher, write a demo one, write a config.
 
-    python -m dyq.dispatch_cli demo traj.npz                      # synthetic trajectory
-    python -m dyq.dispatch_cli config cfg.json                    # default DispatchConfig as JSON
-    python -m dyq.dispatch_cli replay traj.npz --config cfg.json --out plot.png [--json trace.json]
+    dyq dispatch demo traj.npz                      # synthetic trajectory
+    dyq dispatch config cfg.json                    # default DispatchConfig as JSON
+    dyq dispatch replay traj.npz --config cfg.json --out plot.png [--json trace.json]
 
 ``replay`` reads an ``.npz`` (array ``--key``, default ``actions``, or the file's only array) or a
 ``.csv`` (one row per step, numeric columns, optional header line), runs every row through a fresh
@@ -20,8 +20,8 @@ import warnings
 
 import numpy as np
 
-from .dispatch import TRACE_FIELDS, DispatchConfig, KinematicDispatcher, replay_trajectory, synthetic_trajectory
-from .flag import VALID_BITS
+from ..control.dispatch import TRACE_FIELDS, DispatchConfig, KinematicDispatcher, replay_trajectory, synthetic_trajectory
+from ..core.precision import VALID_BITS
 
 
 def load_trajectory(path: str | os.PathLike, key: str | None = None) -> np.ndarray:
@@ -92,19 +92,19 @@ def plot_trace(trace: dict[str, np.ndarray], config: DispatchConfig, path: str |
 
     steps = np.arange(trace["bits"].size)
     fig, axes = plt.subplots(4, 1, figsize=(10, 9), sharex=True, constrained_layout=True)
+    windows = {p.name: p.window for p in config.proxies}
     axes[0].plot(steps, trace["motion_fineness"], color="0.7", lw=0.8, label="M_t")
-    axes[0].plot(steps, trace["smoothed_fineness"], color="C0", label=f"M~_t (W_macro={config.macro_window})")
+    axes[0].plot(steps, trace["smoothed_fineness"], color="C0", label=f"M~_t (W_macro={windows.get('motion_fineness')})")
     axes[0].set_ylabel("motion fineness")
     axes[1].plot(steps, trace["angular_jerk"], color="0.7", lw=0.8, label="J_t")
-    axes[1].plot(steps, trace["smoothed_jerk"], color="C1", label=f"J~_t (W_micro={config.micro_window})")
+    axes[1].plot(steps, trace["smoothed_jerk"], color="C1", label=f"J~_t (W_micro={windows.get('angular_jerk')})")
     axes[1].set_ylabel("angular jerk")
-    axes[2].plot(steps, trace["sensitivity"], color="C2", label=f"S_t (lambda={config.fusion_weight})")
-    for value, name, style in (
-        (config.theta_2_4, "theta_2|4", ":"),
-        (config.theta_4_8, "theta_4|8", "-."),
-        (config.theta_fp, "theta_fp", "--"),
-    ):
-        axes[2].axhline(value, color="k", ls=style, lw=0.8, label=name)
+    weights = ", ".join(f"{p.name} {p.weight:g}" for p in config.proxies)
+    axes[2].plot(steps, trace["sensitivity"], color="C2", label=f"S_t ({weights})")
+    for i, (threshold, bits) in enumerate(config.ladder):
+        top = i == len(config.ladder) - 1
+        axes[2].axhline(threshold, color="k", ls="--" if top else ":", lw=0.8,
+                        label="theta_fp" if top else f"theta {bits}|{config.ladder[i + 1][1]}")
     axes[2].set_ylabel("sensitivity")
     axes[3].step(steps, trace["target_bits"], where="post", color="0.6", ls="--", label="b^_t (target)")
     axes[3].step(steps, trace["bits"], where="post", color="C3", label=f"b*_t ({config.hysteresis}, K={config.delay_window})")
@@ -157,11 +157,10 @@ def _config(args: argparse.Namespace) -> int:
     return 0
 
 
-def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="python -m dyq.dispatch_cli", description="DyQ kinematic dispatcher tools")
-    commands = parser.add_subparsers(dest="command", required=True)
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    tools = parser.add_subparsers(dest="tool", required=True)
 
-    replay = commands.add_parser("replay", help="run a recorded trajectory through the dispatcher")
+    replay = tools.add_parser("replay", help="run a recorded trajectory through the dispatcher")
     replay.add_argument("trajectory", help=".npz or .csv, one row per control step")
     replay.add_argument("--config", help="DispatchConfig JSON (default: built-in defaults)")
     replay.add_argument("--key", help="array name inside an .npz (default: 'actions' or the only array)")
@@ -170,26 +169,20 @@ def build_parser() -> argparse.ArgumentParser:
     replay.add_argument("--json", help="write the config, summary and per-step trace as JSON")
     replay.set_defaults(run=_replay)
 
-    demo = commands.add_parser("demo", help="write a synthetic 7-D action trajectory (.npz)")
+    demo = tools.add_parser("demo", help="write a synthetic 7-D action trajectory (.npz)")
     demo.add_argument("output")
     demo.add_argument("--steps", type=int, default=240)
     demo.add_argument("--seed", type=int, default=0)
     demo.set_defaults(run=_demo)
 
-    config = commands.add_parser("config", help="write the default DispatchConfig as JSON")
+    config = tools.add_parser("config", help="write the default DispatchConfig as JSON")
     config.add_argument("output")
     config.set_defaults(run=_config)
-    return parser
 
 
-def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+def main(args: argparse.Namespace) -> int:
     try:
         return args.run(args)
     except (OSError, ValueError, TypeError) as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
-
-
-if __name__ == "__main__":
-    sys.exit(main())

@@ -9,9 +9,9 @@ from typing import Iterable, Pattern, Union
 import torch
 from torch import nn
 
-from . import ops
-from .flag import PrecisionFlag, check_bits
+from ..control.flag import PrecisionFlag
 from .linear import DyQLinear
+from .precision import check_bits, check_group_size
 
 SkipPattern = Union[str, Pattern[str]]
 DEFAULT_SKIP = ("lm_head",)
@@ -90,8 +90,7 @@ def quantize_model(model: nn.Module, group_size: int = 128, skip: Iterable[SkipP
     """
     if not isinstance(model, nn.Module):
         raise TypeError(f"model must be a torch.nn.Module, got {type(model).__name__}")
-    if group_size not in ops.GROUP_SIZES:
-        raise ValueError(f"group_size must be one of {ops.GROUP_SIZES}, got {group_size!r}")
+    check_group_size(group_size)
     check_bits(act_bits, "act_bits")
     skip = tuple(skip) if not isinstance(skip, (str, re.Pattern)) else (skip,)
     report = QuantizationReport(group_size=group_size, model_bytes_before=_module_bytes(model))

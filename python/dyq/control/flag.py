@@ -1,7 +1,7 @@
 """The precision flag: one int32 that selects the activation bit-width of a whole model.
 
 A quantized model binds every DyQ linear layer to the same :class:`PrecisionFlag`, so a single host
-write switches all of them. The GEMM op ``torch.ops.dyq.gemm_with_flag(..., flag.tensor, ...)`` reads
+write switches all of them. The GEMM ``dyq.ops.gemm(..., flag.tensor, ...)`` (``dyq::gemm_with_flag``) reads
 the int32 at run time, never at trace or capture time: a CUDA graph captured once serves every
 precision.
 
@@ -21,7 +21,7 @@ only when no kernel that may read the old value is still pending:
 * the host writes the flag, then launches (or replays the graph of) the decode; the kernel launch
   orders the earlier host store before the kernel's reads;
 * the host must not write the flag while kernels that should see the previous value are queued or
-  running (for example a prefill that was enqueued asynchronously). :class:`dyq.runtime.DyQRuntime`
+  running (for example a prefill that was enqueued asynchronously). :class:`dyq.DyQRuntime`
   synchronizes before any write that changes the value, and publishes b*_t before it signals the
   decode.
 * kernels read the flag once per launch with an uncached (volatile, ``__ldcv``) load so that no copy
@@ -33,28 +33,19 @@ the property), with no torch dispatch and no allocation.
 
 from __future__ import annotations
 
-import numpy as np
 import torch
 
-VALID_BITS = (2, 4, 8, 16)
-"""Activation bit-widths a flag may hold: 2, 4 and 8 quantize activations, 16 is the BF16 fallback."""
-
-
-def check_bits(bits, name: str = "bits") -> int:
-    """Return ``bits`` as an int if it is one of :data:`VALID_BITS`, else raise naming ``name``."""
-    if isinstance(bits, (bool, np.bool_)) or not isinstance(bits, (int, np.integer)):
-        raise TypeError(f"{name} must be an int in {VALID_BITS}, got {type(bits).__name__} {bits!r}")
-    bits = int(bits)
-    if bits not in VALID_BITS:
-        raise ValueError(f"{name} must be one of {VALID_BITS}, got {bits}")
-    return bits
+from ..core.precision import check_bits
 
 
 class PrecisionFlag:
     """One int32 holding the activation bit-width (2, 4, 8 or 16) that a whole model runs at.
 
+    A flag pickles and deep-copies as its value and pinning: the copy owns a new int32 (a process that
+    unpickles a model gets flags of its own), and layers that shared a flag share the copy.
+
     Args:
-        bits: initial bit-width, one of :data:`VALID_BITS` (default 16, full precision).
+        bits: initial bit-width, one of :data:`dyq.VALID_BITS` (default 16, full precision).
         pin_memory: allocate the int32 in pinned host memory; by default pinned exactly when
             ``torch.cuda.is_available()``.
     """
@@ -68,6 +59,13 @@ class PrecisionFlag:
         self._tensor = torch.empty(1, dtype=torch.int32, pin_memory=bool(pin_memory))
         self._view = self._tensor.numpy()  # shares the tensor's storage
         self._view[0] = bits
+
+    # Copied field by field, the tensor and its numpy view would become two separate buffers.
+    def __getstate__(self) -> dict:
+        return {"bits": self.bits, "pinned": self.is_pinned}
+
+    def __setstate__(self, state: dict) -> None:
+        self.__init__(state["bits"], pin_memory=state["pinned"] and torch.cuda.is_available())
 
     @property
     def bits(self) -> int:

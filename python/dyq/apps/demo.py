@@ -20,10 +20,11 @@ import time
 
 import torch
 
-from .dispatch import DispatchConfig, KinematicDispatcher, synthetic_trajectory
-from .flag import VALID_BITS, PrecisionFlag
-from .quantize import quantize_model
-from .runtime import DyQRuntime
+from ..control.dispatch import DispatchConfig, KinematicDispatcher, synthetic_trajectory
+from ..control.flag import PrecisionFlag
+from ..control.runtime import DyQRuntime
+from ..core.precision import VALID_BITS
+from ..core.quantize import quantize_model
 
 ACTION_TOKENS = 7
 ACTION_BINS = 256

@@ -28,8 +28,9 @@ import time
 from concurrent.futures import Future, ThreadPoolExecutor
 from typing import Any, Callable, Iterator
 
+from ..core.precision import VALID_BITS, check_bits
 from .dispatch import KinematicDispatcher
-from .flag import VALID_BITS, PrecisionFlag, check_bits
+from .flag import PrecisionFlag
 
 
 @dataclasses.dataclass
@@ -76,8 +77,8 @@ def _default_barrier(flag: PrecisionFlag) -> Callable[[], None] | None:
 
 
 class DyQRuntime:
-    """Runs a :class:`~dyq.dispatch.KinematicDispatcher` beside the model and drives a
-    :class:`~dyq.flag.PrecisionFlag`.
+    """Runs a :class:`~dyq.KinematicDispatcher` beside the model and drives a
+    :class:`~dyq.PrecisionFlag`.
 
     Args:
         dispatcher: the kinematic dispatcher (its config decides action or pose input).

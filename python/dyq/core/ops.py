@@ -8,15 +8,8 @@ from __future__ import annotations
 
 import torch
 
-from . import _C  # noqa: F401  (loads the library that registers the ops)
-from .reference import ACT_BITS, GROUP_SIZES  # noqa: F401  (re-exported)
-
-
-def _check_fake_gemm(x: torch.Tensor, qweight: torch.Tensor, scales: torch.Tensor, group_size: int) -> None:
-    torch._check(group_size in GROUP_SIZES, lambda: f"dyq: group_size must be 32, 64 or 128, got {group_size}")
-    torch._check(qweight.dim() == 2, lambda: f"dyq: qweight must have shape [N, K/2], got {tuple(qweight.shape)}")
-    torch._check(x.shape[-1] == qweight.shape[1] * 2,
-                 lambda: f"dyq: x has {x.shape[-1]} features but the weight expects K = {qweight.shape[1] * 2}")
+from .. import _C
+from .precision import GROUP_SIZES, VALID_BITS, spelled_out
 
 
 @torch.library.register_fake("dyq::quantize_weight")
@@ -40,16 +33,18 @@ def _quantize_activations_fake(x, group_size, act_bits):
             x.new_empty(lead + (k // group_size,), dtype=torch.uint8))
 
 
-@torch.library.register_fake("dyq::gemm")
 def _gemm_fake(x, qweight, scales, group_size, act_bits, bias=None):
-    _check_fake_gemm(x, qweight, scales, group_size)
+    """The fake kernel of ``dyq::gemm`` and ``dyq::gemm_with_flag`` (``act_bits`` an int or the flag)."""
+    torch._check(group_size in GROUP_SIZES,
+                 lambda: f"dyq: group_size must be {spelled_out(GROUP_SIZES)}, got {group_size}")
+    torch._check(qweight.dim() == 2, lambda: f"dyq: qweight must have shape [N, K/2], got {tuple(qweight.shape)}")
+    torch._check(x.shape[-1] == qweight.shape[1] * 2,
+                 lambda: f"dyq: x has {x.shape[-1]} features but the weight expects K = {qweight.shape[1] * 2}")
     return x.new_empty(tuple(x.shape[:-1]) + (qweight.shape[0],))
 
 
-@torch.library.register_fake("dyq::gemm_with_flag")
-def _gemm_with_flag_fake(x, qweight, scales, group_size, act_bits_flag, bias=None):
-    _check_fake_gemm(x, qweight, scales, group_size)
-    return x.new_empty(tuple(x.shape[:-1]) + (qweight.shape[0],))
+torch.library.register_fake("dyq::gemm")(_gemm_fake)
+torch.library.register_fake("dyq::gemm_with_flag")(_gemm_fake)
 
 
 def quantize_weight(weight: torch.Tensor, group_size: int = 128) -> tuple[torch.Tensor, torch.Tensor]:
@@ -69,13 +64,26 @@ def quantize_activations(x: torch.Tensor, group_size: int, act_bits: int):
     return torch.ops.dyq.quantize_activations(x, group_size, act_bits)
 
 
-def gemm(x: torch.Tensor, qweight: torch.Tensor, scales: torch.Tensor, group_size: int, act_bits: int,
-         bias: torch.Tensor | None = None) -> torch.Tensor:
-    """``x [..., K] @ W^T (+ bias)`` with INT4 weights and ``act_bits``-bit activations (16: unquantized)."""
+def gemm(x: torch.Tensor, qweight: torch.Tensor, scales: torch.Tensor, group_size: int,
+         act_bits: int | torch.Tensor, bias: torch.Tensor | None = None) -> torch.Tensor:
+    """``x [..., K] @ W^T (+ bias)`` with INT4 weights and ``act_bits``-bit activations (16: unquantized).
+
+    ``act_bits`` is a width of :data:`VALID_BITS`, or a precision flag (a one-element int32 tensor such as
+    ``PrecisionFlag.tensor``) that the kernel reads when it runs (``torch.ops.dyq.gemm_with_flag``).
+    """
+    if isinstance(act_bits, torch.Tensor):
+        return torch.ops.dyq.gemm_with_flag(x, qweight, scales, group_size, act_bits, bias)
     return torch.ops.dyq.gemm(x, qweight, scales, group_size, act_bits, bias)
 
 
-def gemm_with_flag(x: torch.Tensor, qweight: torch.Tensor, scales: torch.Tensor, group_size: int,
-                   act_bits_flag: torch.Tensor, bias: torch.Tensor | None = None) -> torch.Tensor:
-    """As :func:`gemm`, with the bit-width read at run time from a one-element int32 tensor."""
-    return torch.ops.dyq.gemm_with_flag(x, qweight, scales, group_size, act_bits_flag, bias)
+def width_counts() -> dict[int, int]:
+    """GEMM calls of this process by the activation width each ran at, one key per width of
+    :data:`VALID_BITS`. Counted in C++ where the width is resolved: for a flag, the value read at the
+    call (on CUDA the host's read of the pinned flag at launch; see docs/cuda.md). A child process
+    starts at zero."""
+    return dict(zip(VALID_BITS, _C.gemm_width_counts()))
+
+
+def reset_width_counts() -> None:
+    """Set every count of :func:`width_counts` to zero."""
+    _C.reset_gemm_width_counts()

@@ -1,0 +1,25 @@
+"""The ``dyq`` command: one table of subcommands, each a module with ``add_arguments(parser)`` and
+``main(args) -> int``, imported only when its command runs (``dyq demo`` needs transformers,
+``dyq dispatch`` does not). A new command is one entry of :data:`COMMANDS`."""
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+
+COMMANDS: dict[str, tuple[str, str]] = {
+    "demo": ("dyq.apps.demo", "quantize a small OpenVLA-shaped policy and run a control loop"),
+    "dispatch": ("dyq.apps.dispatch_cli", "dispatcher tools: replay a trajectory, write a demo trajectory or config"),
+}
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else argv
+    parser = argparse.ArgumentParser(prog="dyq", description="Dynamic-precision INT4 inference for VLA policies")
+    commands = parser.add_subparsers(dest="command", required=True)
+    for name, (module, help_text) in COMMANDS.items():
+        command = commands.add_parser(name, help=help_text)
+        if argv[:1] == [name]:
+            importlib.import_module(module).add_arguments(command)
+    args = parser.parse_args(argv)
+    return importlib.import_module(COMMANDS[args.command][0]).main(args)
