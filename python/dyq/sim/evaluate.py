@@ -1,0 +1,312 @@
+"""``dyq eval``: the closed-loop table, a task x configuration x seed grid run in worker processes.
+
+Every episode is cached as one gzipped JSON file keyed by (task, configuration, seed, checkpoint
+digest), so an interrupted run resumes, a new configuration adds rows without re-running the others,
+and a retrained checkpoint never mixes with an old one. After the grid, the summary of every cached
+episode in the grid is merged into ``bench/results/closed_loop.json`` (other tasks and configurations
+already there are kept) and the markdown table is rewritten.
+
+Seeds are fixed lists, written into the results: evaluation seeds are ``0 .. episodes-1`` (disjoint from
+the demonstration seeds, which start at :data:`dyq.sim.envs.DEMO_SEED0`), the same for every
+configuration, so configurations are compared pairwise on the same initial states.
+"""
+from __future__ import annotations
+
+import argparse
+import gzip
+import hashlib
+import json
+import math
+import multiprocessing
+import os
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .. import results as results_io
+from ..analysis.stats import paired_comparison, wilson_interval
+from . import envs
+
+DEFAULT_OUT = Path("bench/results/closed_loop.json")
+DEFAULT_TABLE = Path("docs/closed_loop.md")
+DEFAULT_CACHE = Path(".cache/closed_loop")
+WIDTHS = (2, 4, 8, 16)
+# Paired comparisons reported for every task: (configuration, against).
+COMPARISONS = (("dyq", "fp32"), ("dyq", "w4a16"), ("dyq", "w4a2"))
+
+
+def checkpoint_digest(checkpoint: str | os.PathLike) -> str:
+    """First 12 hex digits of the SHA-256 of the checkpoint's weights and config."""
+    h = hashlib.sha256()
+    for name in ("policy.json", "model.safetensors"):
+        h.update((Path(checkpoint) / name).read_bytes())
+    return h.hexdigest()[:12]
+
+
+def cache_path(cache: Path, task: str, config: str, seed: int, digest: str) -> Path:
+    return cache / task / digest / config / f"seed_{seed:05d}.json.gz"
+
+
+def _read_episode(path: Path) -> dict[str, Any]:
+    with gzip.open(path, "rt") as f:
+        return json.load(f)
+
+
+def _write_episode(path: Path, episode: dict[str, Any]) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + f".{os.getpid()}.tmp")
+    with gzip.open(tmp, "wt") as f:
+        json.dump(episode, f)
+    tmp.replace(path)
+
+
+# -- worker processes -----------------------------------------------------------------------------
+
+_WORKER: dict[str, Any] = {}
+
+
+def _worker_init(threads: int) -> None:
+    import torch
+
+    torch.set_num_threads(threads)
+
+
+def _worker_run(job: tuple[str, str, int, str, str]) -> tuple[str, str, int, bool, int]:
+    """Runs one episode in a worker (policy and environment built once per process) and caches it."""
+    from .rollout import PolicyRunner, run_episode
+
+    task, config, seed, checkpoint, path = job
+    if _WORKER.get("checkpoint") != checkpoint:
+        _WORKER.update(checkpoint=checkpoint, runner=PolicyRunner.load(checkpoint))
+    env_key = ("env", task)
+    if env_key not in _WORKER:
+        _WORKER[env_key] = envs.make_env(task)
+    episode = run_episode(_WORKER["runner"], task, config, seed, env=_WORKER[env_key])
+    _write_episode(Path(path), episode.to_dict())
+    return task, config, seed, episode.success, episode.steps
+
+
+def run_grid(jobs: list[tuple[str, str, int, str, str]], workers: int, progress: bool = True) -> None:
+    """Runs the jobs not yet cached, in ``workers`` processes with one torch thread each."""
+    from tqdm import tqdm
+
+    if not jobs:
+        return
+    # Jobs sorted by checkpoint so that a worker rarely has to load another policy.
+    jobs = sorted(jobs, key=lambda j: (j[3], j[0], j[2], j[1]))
+    bar = tqdm(total=len(jobs), disable=not progress, desc="episodes")
+    successes = 0
+    if workers <= 1:
+        _worker_init(1)
+        for job in jobs:
+            successes += _worker_run(job)[3]
+            bar.update(1)
+            bar.set_postfix(success=f"{successes}/{bar.n}")
+    else:
+        context = multiprocessing.get_context("spawn")
+        with context.Pool(workers, initializer=_worker_init, initargs=(1,)) as pool:
+            for result in pool.imap_unordered(_worker_run, jobs, chunksize=1):
+                successes += result[3]
+                bar.update(1)
+                bar.set_postfix(success=f"{successes}/{bar.n}")
+    bar.close()
+
+
+# -- summaries --------------------------------------------------------------------------------------
+
+def run_lengths(bits: list[int]) -> str:
+    """``bits`` as runs, e.g. ``"16x10 8x3 2x40"``: compact, and what a run-preserving shuffle needs."""
+    runs: list[list[int]] = []
+    for b in bits:
+        if runs and runs[-1][0] == b:
+            runs[-1][1] += 1
+        else:
+            runs.append([b, 1])
+    return " ".join(f"{b}x{n}" for b, n in runs)
+
+
+def summarize(episodes: list[dict[str, Any]]) -> dict[str, Any]:
+    """One configuration's row: success with its Wilson interval, widths, latency and the per-seed record."""
+    episodes = sorted(episodes, key=lambda e: e["seed"])
+    n = len(episodes)
+    successes = sum(e["success"] for e in episodes)
+    bits = np.concatenate([np.asarray(e["bits"]) for e in episodes]) if episodes else np.zeros(0)
+    kernel = {str(w): 0 for w in WIDTHS}
+    mismatched = 0
+    for e in episodes:
+        for chosen, decode, prefill in zip(e["bits"], e["decode_kernel_bits"], e["prefill_kernel_bits"]):
+            for counts in (decode, prefill):
+                for width, calls in counts.items():
+                    kernel[width] = kernel.get(width, 0) + calls
+            # The decode's GEMMs must all have run at the published width (the float policy runs none).
+            if decode and set(decode) != {str(chosen)}:
+                mismatched += 1
+    kernel_total = sum(kernel.values())
+    latency = np.concatenate([np.asarray(e["latency_ms"]) for e in episodes]) if episodes else np.zeros(0)
+    lo, hi = wilson_interval(successes, n) if n else (math.nan, math.nan)
+    return {
+        "episodes": n,
+        "successes": int(successes),
+        "success_rate": successes / n if n else math.nan,
+        "wilson95": [lo, hi],
+        "mean_bits": float(bits.mean()) if len(bits) else math.nan,
+        "bits_share": {str(w): float((bits == w).mean()) if len(bits) else 0.0 for w in WIDTHS},
+        "share_below_8": float((bits < 8).mean()) if len(bits) else 0.0,
+        "kernel_bits_share": {w: c / kernel_total for w, c in kernel.items()} if kernel_total else {},
+        "steps_with_mismatched_kernel_bits": mismatched,
+        "mean_steps": float(np.mean([e["steps"] for e in episodes])) if episodes else math.nan,
+        "latency_ms": {
+            "median": float(np.median(latency)) if len(latency) else math.nan,
+            "p90": float(np.percentile(latency, 90)) if len(latency) else math.nan,
+            "mean": float(latency.mean()) if len(latency) else math.nan,
+        },
+        "per_seed": {
+            str(e["seed"]): {"success": bool(e["success"]), "steps": e["steps"],
+                             "mean_bits": float(np.mean(e["bits"])), "bits_runs": run_lengths(e["bits"])}
+            for e in episodes
+        },
+    }
+
+
+def compare(rows: dict[str, Any], config: str, against: str) -> dict[str, Any] | None:
+    """Paired comparison of two configurations on the seeds both have."""
+    if config not in rows or against not in rows:
+        return None
+    a, b = rows[config]["per_seed"], rows[against]["per_seed"]
+    seeds = sorted(set(a) & set(b), key=int)
+    if not seeds:
+        return None
+    result = paired_comparison(np.array([a[s]["success"] for s in seeds]), np.array([b[s]["success"] for s in seeds]))
+    result["verdict"] = result["verdict"].replace("A better", f"{config} better").replace("B better", f"{against} better")
+    return {"config": config, "against": against, **result}
+
+
+def _jsonable(value):
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    if isinstance(value, dict):
+        return {k: _jsonable(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_jsonable(v) for v in value]
+    if isinstance(value, (np.floating, np.integer, np.bool_)):
+        return value.item()
+    return value
+
+
+def update_results(out: Path, task: str, seeds: list[int], checkpoint: str, digest: str,
+                   rows: dict[str, Any]) -> dict[str, Any]:
+    """Merges one task's rows into the results file; returns the whole file's content."""
+    data = json.loads(out.read_text()) if out.is_file() else {"tasks": {}}
+    entry = data["tasks"].setdefault(task, {"configs": {}})
+    if entry.get("checkpoint_digest") not in (None, digest):
+        entry["configs"] = {}  # a retrained policy: the old rows describe another policy
+    entry.update(horizon=envs.spec(task).horizon, seeds=seeds, checkpoint=str(checkpoint), checkpoint_digest=digest)
+    entry["configs"].update(rows)
+    entry["comparisons"] = [c for c in (compare(entry["configs"], a, b) for a, b in COMPARISONS) if c]
+    data["device"] = "cpu"
+    data["environment"] = results_io.environment()
+    try:
+        import mujoco
+        import robosuite
+
+        data["versions"] = {"robosuite": robosuite.__version__, "mujoco": mujoco.__version__}
+    except ImportError:
+        pass
+    data = _jsonable(data)
+    results_io.write_json(out, data)
+    return data
+
+
+def markdown_table(data: dict[str, Any]) -> str:
+    lines = ["# Closed-loop results", "",
+             "Written by `dyq eval` from `bench/results/closed_loop.json`; do not edit by hand. Success with its",
+             "Wilson 95 % interval; bits are the decode's activation width per control step (16 = unquantized);",
+             "latency is the policy's prefill + decode per control step on the CPU (median).", ""]
+    for task, entry in data["tasks"].items():
+        seeds = entry["seeds"]
+        lines += [f"## {task}", "",
+                  f"Horizon {entry['horizon']} steps; seeds {seeds[0]}..{seeds[-1]} ({len(seeds)}); "
+                  f"checkpoint `{entry['checkpoint']}` ({entry['checkpoint_digest']}).", "",
+                  "| config | success | Wilson 95 % | mean bits | steps < 8 bits | 2 / 4 / 8 / 16 bits | steps | ms/step |",
+                  "|---|---|---|---|---|---|---|---|"]
+        for name, row in entry["configs"].items():
+            lo, hi = row["wilson95"]
+            share = row["bits_share"]
+            lines.append(
+                f"| {name} | {row['successes']}/{row['episodes']} ({100 * row['success_rate']:.0f} %) "
+                f"| [{100 * lo:.0f}, {100 * hi:.0f}] % | {row['mean_bits']:.2f} | {100 * row['share_below_8']:.0f} % "
+                f"| {' / '.join(f'{100 * share[str(w)]:.0f}' for w in WIDTHS)} % | {row['mean_steps']:.0f} "
+                f"| {row['latency_ms']['median']:.1f} |")
+        if entry.get("comparisons"):
+            lines += ["", "Paired on the same seeds (exact McNemar test on the discordant seeds):", ""]
+            for c in entry["comparisons"]:
+                lines.append(f"- {c['config']} vs {c['against']}: {c['successes_a']} vs {c['successes_b']} of {c['n']}, "
+                             f"discordant {c['a_only']} / {c['b_only']}, p = {c['p_value']:.3g}: {c['verdict']}")
+        lines.append("")
+    return "\n".join(lines)
+
+
+# -- command line -----------------------------------------------------------------------------------
+
+def default_checkpoint(task: str) -> Path:
+    """The policy trained for ``task`` that ships with dyq (``dyq/sim/policies/<task>``)."""
+    return Path(__file__).resolve().parent / "policies" / task
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--tasks", default="lift,pick_place_can,square", help="comma-separated task names")
+    parser.add_argument("--configs", default="fp32,w4a16,w4a8,w4a4,w4a2,dyq", help="comma-separated configurations")
+    parser.add_argument("--episodes", type=int, default=50, help="seeds 0 .. episodes-1 per task and configuration")
+    parser.add_argument("--checkpoint", action="append", default=[], metavar="TASK=DIR",
+                        help="policy checkpoint for a task (default: the one that ships with dyq)")
+    parser.add_argument("--workers", type=int, default=max(1, (os.cpu_count() or 1)))
+    parser.add_argument("--cache", type=Path, default=DEFAULT_CACHE)
+    parser.add_argument("--out", type=Path, default=DEFAULT_OUT)
+    parser.add_argument("--table", type=Path, default=DEFAULT_TABLE)
+    parser.add_argument("--no-progress", action="store_true")
+
+
+def main(args: argparse.Namespace) -> int:
+    from .rollout import run_config
+
+    tasks = [t for t in args.tasks.split(",") if t]
+    configs = [c for c in args.configs.split(",") if c]
+    for task in tasks:
+        envs.spec(task)
+    for config in configs:
+        run_config(config)
+    if args.episodes < 1:
+        raise ValueError(f"--episodes must be >= 1, got {args.episodes}")
+    checkpoints = {task: default_checkpoint(task) for task in tasks}
+    for item in args.checkpoint:
+        task, _, directory = item.partition("=")
+        if task not in tasks or not directory:
+            raise ValueError(f"--checkpoint must be TASK=DIR for one of {tasks}, got {item!r}")
+        checkpoints[task] = Path(directory)
+    digests = {task: checkpoint_digest(checkpoints[task]) for task in tasks}
+    seeds = list(range(args.episodes))
+
+    jobs = []
+    for task in tasks:
+        for config in configs:
+            for seed in seeds:
+                path = cache_path(args.cache, task, config, seed, digests[task])
+                if not path.is_file():
+                    jobs.append((task, config, seed, str(checkpoints[task]), str(path)))
+    total = len(tasks) * len(configs) * len(seeds)
+    print(f"{total} episodes in the grid, {total - len(jobs)} cached, {len(jobs)} to run")
+    run_grid(jobs, args.workers, progress=not args.no_progress)
+
+    data = None
+    for task in tasks:
+        rows = {}
+        for config in configs:
+            episodes = [_read_episode(cache_path(args.cache, task, config, s, digests[task])) for s in seeds]
+            rows[config] = summarize(episodes)
+        data = update_results(args.out, task, seeds, checkpoints[task], digests[task], rows)
+    args.table.parent.mkdir(parents=True, exist_ok=True)
+    args.table.write_text(markdown_table(data))
+    print(markdown_table(data))
+    print(f"wrote {args.out} and {args.table}")
+    return 0

@@ -1,0 +1,53 @@
+"""Pictures of closed-loop episodes (matplotlib, imported only when a picture is asked for)."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+
+def _pyplot():
+    try:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+    except ImportError as err:
+        raise RuntimeError("plots need matplotlib: pip install matplotlib") from err
+    return plt
+
+
+def plot_episode(episode, path: str | Path, title: str = "") -> Path:
+    """The dispatcher over one episode: M̃_t and J̃_t, their fusion S_t with the thresholds, and the
+    bit-width each control step's decode ran at."""
+    plt = _pyplot()
+    from .rollout import run_config
+
+    steps = np.arange(episode.steps)
+    fig, (top, middle, bottom) = plt.subplots(3, 1, figsize=(9, 6.5), sharex=True,
+                                              gridspec_kw={"height_ratios": [2, 2, 1.3]})
+    top.plot(steps, episode.smoothed_fineness, label="M̃_t (Motion Fineness, W_macro mean)")
+    top.plot(steps, episode.smoothed_jerk, label="J̃_t (Angular Jerk, W_micro mean)")
+    top.set_ylabel("normalized")
+    top.legend(loc="upper right", fontsize=8)
+    middle.plot(steps, episode.sensitivity, color="black", label="S_t")
+    config = run_config(episode.config)
+    if config.kind == "dyq":
+        dispatch = config.dispatch_config()
+        for name in ("theta_2_4", "theta_4_8", "theta_fp"):
+            if hasattr(dispatch, name):
+                middle.axhline(getattr(dispatch, name), linestyle=":", linewidth=1, color="gray")
+    middle.set_ylabel("S_t")
+    middle.legend(loc="upper right", fontsize=8)
+    bottom.step(steps, episode.bits, where="post", color="tab:red")
+    bottom.set_yticks([2, 4, 8, 16])
+    bottom.set_ylabel("bits")
+    bottom.set_xlabel("control step")
+    outcome = "success" if episode.success else "failure"
+    fig.suptitle(title or f"{episode.task}, {episode.config}, seed {episode.seed}: {outcome} in {episode.steps} steps")
+    fig.tight_layout()
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
