@@ -13,7 +13,7 @@ import dyq  # noqa: E402
 from dyq.sim import envs  # noqa: E402
 from dyq.sim import evaluate  # noqa: E402
 from dyq.sim.policy import PolicyConfig, TokenPolicy  # noqa: E402
-from dyq.sim.rollout import PolicyRunner, RunConfig, run_episode  # noqa: E402
+from dyq.sim.rollout import InvertedLadderDispatcher, PolicyRunner, RunConfig, make_schedule, run_episode  # noqa: E402
 from dyq.sim.tokens import BinTokenizer  # noqa: E402
 
 TASK = "lift"
@@ -56,7 +56,7 @@ def assert_kernels_ran_the_published_widths(episode, first_prefill_bits=16):
     for t, (bits, prefill, decode) in enumerate(zip(episode["bits"], episode["prefill_kernel_bits"],
                                                      episode["decode_kernel_bits"])):
         assert set(decode) == {str(bits)}, f"step {t}: decode chose {bits}, kernels ran {decode}"
-        if episode["config"] == "dyq":  # the prefill runs at b*_{t-1}
+        if episode["config"].startswith(("dyq", "random")):  # the prefill runs at b*_{t-1}
             assert set(prefill) == {str(previous)}, f"step {t}: prefill expected {previous}, ran {prefill}"
         else:
             assert set(prefill) == {str(bits)}
@@ -99,8 +99,8 @@ def test_widths_run_in_a_worker_process_equal_the_widths_chosen(policy, tmp_path
             p.copy_(p.to(torch.bfloat16).float())
     checkpoint = policy.save(tmp_path / "policy")
     digest = evaluate.checkpoint_digest(checkpoint)
-    jobs = [(TASK, config, 5, str(checkpoint), str(evaluate.cache_path(tmp_path / "cache", TASK, config, 5, digest)))
-            for config in ("w4a2", "w4a8", "dyq")]
+    jobs = [(TASK, config, 5, str(checkpoint), str(evaluate.cache_path(tmp_path / "cache", TASK, config, 5, digest)),
+             None) for config in ("w4a2", "w4a8", "dyq")]
     evaluate.run_grid(jobs, workers=2, progress=False)
     for job in jobs:
         episode = evaluate._read_episode(evaluate.cache_path(tmp_path / "cache", TASK, job[1], 5, digest))
@@ -144,3 +144,53 @@ def test_results_merge_keeps_other_rows(tmp_path, monkeypatch):
     assert set(data["tasks"][TASK]["configs"]) == {"w4a8"}
     assert json.loads(out.read_text()) == data
     assert "| w4a8 |" in evaluate.markdown_table(data)
+
+
+def test_random_schedules_keep_dyq_statistics():
+    dyq_bits = [16] * 10 + [8] * 3 + [2] * 20 + [4] * 5 + [2] * 7
+    shares = make_schedule("shares", dyq_bits, seed=3, length=4000)
+    assert set(shares) == {2, 4, 8, 16}
+    for width in (2, 4, 8, 16):
+        assert abs(shares.count(width) / 4000 - dyq_bits.count(width) / len(dyq_bits)) < 0.03
+    assert make_schedule("shares", dyq_bits, seed=3, length=50) == shares[:50]
+    assert make_schedule("shares", dyq_bits, seed=4, length=50) != shares[:50]
+    runs = make_schedule("runs", dyq_bits, seed=3, length=len(dyq_bits))
+    assert sorted(runs) == sorted(dyq_bits) and runs != dyq_bits
+    longer = make_schedule("runs", dyq_bits, seed=3, length=3 * len(dyq_bits))
+    assert longer[: len(dyq_bits)] == runs and len(longer) == 3 * len(dyq_bits)
+    with pytest.raises(ValueError, match="schedule kind"):
+        make_schedule("bogus", dyq_bits, 0, 10)
+    with pytest.raises(ValueError, match="dyq_bits"):
+        make_schedule("runs", [], 0, 10)
+
+
+def test_inverted_ladder_reverses_phi():
+    config = dyq.DispatchConfig()
+    normal, inverted = dyq.KinematicDispatcher(config), InvertedLadderDispatcher(config)
+    for s in (0.0, 0.1, 0.2, 0.4, 0.9):
+        assert inverted.allocate(s) == {2: 16, 4: 8, 8: 4, 16: 2}[normal.allocate(s)]
+
+
+def test_schedule_episode_runs_the_schedule(runner, env):
+    schedule = make_schedule("runs", [2, 2, 8, 8, 8, 16, 4, 4], seed=0, length=HORIZON)
+    episode = run_episode(runner, TASK, "random_runs", seed=1, env=env, schedule=schedule)
+    assert episode.bits == schedule[: episode.steps]
+    assert_kernels_ran_the_published_widths(episode.to_dict())
+    with pytest.raises(ValueError, match="needs a schedule"):
+        run_episode(runner, TASK, "random_schedule", seed=1, env=env)
+
+
+def test_smoothquant_configuration_calibrates_on_training_data(policy, env):
+    rng = np.random.default_rng(5)
+    first = envs.observation_vector(TASK, envs.reset_env(env, 0))
+    calibration = (first + rng.normal(scale=0.05, size=(32, first.shape[0])), rng.uniform(-1, 1, size=(32, 7)))
+    smoothed = PolicyRunner(policy, calibration)
+    episode = run_episode(smoothed, TASK, "smoothquant_w4a4", seed=1, env=env)
+    assert set(episode.bits) == {4}
+    assert_kernels_ran_the_published_widths(episode.to_dict())
+    # Different weights from round-to-nearest, the same float function before quantization.
+    a = smoothed.quantized_policy("smoothquant").model.model.layers[0].self_attn.q_proj
+    b = smoothed.quantized_policy("rtn").model.model.layers[0].self_attn.q_proj
+    assert not torch.equal(a.scales, b.scales)
+    with pytest.raises(ValueError, match="calibration data"):
+        PolicyRunner(policy).quantized_policy("smoothquant")

@@ -687,13 +687,18 @@ class KinematicDispatcher:
         warm = self._warm = all(proxy.is_warm for proxy, weight in zip(proxies, self._weights) if weight > 0.0)
         if warm:
             sensitivity = fuse_sensitivity([proxy.value() for proxy in proxies], self._weights)
-            target = allocate_bits(sensitivity, self.config.ladder)
+            target = self.allocate(sensitivity)
         else:
             sensitivity = math.nan
             target = FALLBACK_BITS
         self._sensitivity = sensitivity
         self._target_bits = target
         return self.hysteresis._update(target)
+
+    def allocate(self, sensitivity: float) -> int:
+        """Phi of Eq. 6: the target width b^_t of a fused sensitivity S_t, from the ladder. Controls that
+        map S_t differently (a reversed ladder, in the closed-loop ablations) override it."""
+        return allocate_bits(sensitivity, self.config.ladder)
 
     def _proxy_attribute(self, name: str, attribute: str) -> float:
         proxy = self._proxies.get(name)

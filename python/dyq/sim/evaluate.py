@@ -33,7 +33,8 @@ DEFAULT_TABLE = Path("docs/closed_loop.md")
 DEFAULT_CACHE = Path(".cache/closed_loop")
 WIDTHS = (2, 4, 8, 16)
 # Paired comparisons reported for every task: (configuration, against).
-COMPARISONS = (("dyq", "fp32"), ("dyq", "w4a16"), ("dyq", "w4a2"))
+COMPARISONS = (("dyq", "fp32"), ("dyq", "w4a16"), ("dyq", "w4a2"), ("dyq", "random_schedule"),
+               ("dyq", "random_runs"), ("dyq_inverted", "dyq"))
 
 
 def checkpoint_digest(checkpoint: str | os.PathLike) -> str:
@@ -72,22 +73,25 @@ def _worker_init(threads: int) -> None:
     torch.set_num_threads(threads)
 
 
-def _worker_run(job: tuple[str, str, int, str, str]) -> tuple[str, str, int, bool, int]:
+Job = tuple  # (task, config, seed, checkpoint, cache path, schedule or None)
+
+
+def _worker_run(job: Job) -> tuple[str, str, int, bool, int]:
     """Runs one episode in a worker (policy and environment built once per process) and caches it."""
     from .rollout import PolicyRunner, run_episode
 
-    task, config, seed, checkpoint, path = job
+    task, config, seed, checkpoint, path, schedule = job
     if _WORKER.get("checkpoint") != checkpoint:
         _WORKER.update(checkpoint=checkpoint, runner=PolicyRunner.load(checkpoint))
     env_key = ("env", task)
     if env_key not in _WORKER:
         _WORKER[env_key] = envs.make_env(task)
-    episode = run_episode(_WORKER["runner"], task, config, seed, env=_WORKER[env_key])
+    episode = run_episode(_WORKER["runner"], task, config, seed, env=_WORKER[env_key], schedule=schedule)
     _write_episode(Path(path), episode.to_dict())
     return task, config, seed, episode.success, episode.steps
 
 
-def run_grid(jobs: list[tuple[str, str, int, str, str]], workers: int, progress: bool = True) -> None:
+def run_grid(jobs: list[Job], workers: int, progress: bool = True) -> None:
     """Runs the jobs not yet cached, in ``workers`` processes with one torch thread each."""
     from tqdm import tqdm
 
@@ -286,17 +290,35 @@ def main(args: argparse.Namespace) -> int:
         checkpoints[task] = Path(directory)
     digests = {task: checkpoint_digest(checkpoints[task]) for task in tasks}
     seeds = list(range(args.episodes))
+    scheduled = [c for c in configs if run_config(c).kind == "schedule"]
+    # Schedules are drawn from DyQ's episode on the same seed, so those run first.
+    first = [c for c in configs if c not in scheduled] + (["dyq"] if scheduled and "dyq" not in configs else [])
 
-    jobs = []
-    for task in tasks:
-        for config in configs:
-            for seed in seeds:
-                path = cache_path(args.cache, task, config, seed, digests[task])
-                if not path.is_file():
-                    jobs.append((task, config, seed, str(checkpoints[task]), str(path)))
-    total = len(tasks) * len(configs) * len(seeds)
-    print(f"{total} episodes in the grid, {total - len(jobs)} cached, {len(jobs)} to run")
+    def pending(names: list[str], schedule_of=None) -> list[Job]:
+        jobs = []
+        for task in tasks:
+            for config in names:
+                for seed in seeds:
+                    path = cache_path(args.cache, task, config, seed, digests[task])
+                    if not path.is_file():
+                        schedule = schedule_of(task, config, seed) if schedule_of else None
+                        jobs.append((task, config, seed, str(checkpoints[task]), str(path), schedule))
+        return jobs
+
+    def schedule_of(task: str, config: str, seed: int) -> list[int]:
+        from .rollout import make_schedule
+
+        dyq_bits = _read_episode(cache_path(args.cache, task, "dyq", seed, digests[task]))["bits"]
+        return make_schedule(run_config(config).schedule, dyq_bits, seed, envs.spec(task).horizon)
+
+    total = len(tasks) * len(set(first) | set(scheduled)) * len(seeds)
+    jobs = pending(first)
+    print(f"{total} episodes in the grid, {len(jobs)} to run before the schedules")
     run_grid(jobs, args.workers, progress=not args.no_progress)
+    jobs = pending(scheduled, schedule_of)
+    if jobs:
+        print(f"{len(jobs)} scheduled episodes to run")
+        run_grid(jobs, args.workers, progress=not args.no_progress)
 
     data = None
     for task in tasks:

@@ -6,7 +6,15 @@ A **configuration** says how the policy runs (:data:`CONFIGS`):
 * ``w4a16``, ``w4a8``, ``w4a4``, ``w4a2``: every projection on static INT4 weights
   (``dyq.quantize_model``, group 128) at one fixed activation width for the whole episode;
 * ``dyq``: the same INT4 model, with the width of every control step chosen by
-  :class:`dyq.KinematicDispatcher` under :class:`dyq.DyQRuntime` (paper Sec. IV-V).
+  :class:`dyq.KinematicDispatcher` under :class:`dyq.DyQRuntime` (paper Sec. IV-V);
+* controls that decide whether the kinematics matter: ``smoothquant_w4a4`` (static W4A4 on weights
+  smoothed SmoothQuant-style, :mod:`dyq.smoothing`, calibrated on the checkpoint's training sample);
+  dispatcher ablations ``dyq_no_hysteresis`` (b* = b^), ``dyq_motion_only`` (λ = 1),
+  ``dyq_jerk_only`` (λ = 0); ``dyq_inverted`` (the ladder reversed: 2 <-> 16 and 4 <-> 8, so fine
+  motion gets low widths); ``random_schedule`` (per step, a width drawn independently with the shares
+  DyQ had on the same seed) and ``random_runs`` (DyQ's own runs of equal width on that seed in shuffled
+  order: the run lengths kept, the timing lost). A schedule's prefill runs at the previous step's
+  width, as DyQ's does.
 
 DyQ in the loop, per control step t (paper Algorithm 1 and Sec. V-B):
 
@@ -33,14 +41,19 @@ import math
 import time
 from typing import Any
 
+from pathlib import Path
+
 import numpy as np
+import torch
 
 import dyq
 
+from ..core.precision import check_bits
 from . import envs
 from .policy import TokenPolicy
 
 GROUP_SIZE = 128
+SMOOTHQUANT_ALPHA = 0.5  # SmoothQuant's default migration strength
 
 
 @dataclasses.dataclass(frozen=True)
@@ -48,22 +61,71 @@ class RunConfig:
     """How the policy runs in one closed-loop configuration."""
 
     name: str
-    kind: str  # "float", "static" or "dyq"
+    kind: str  # "float", "static", "dyq" or "schedule"
     bits: int | None = None  # the fixed width of a "static" configuration
-    dispatch: dict = dataclasses.field(default_factory=dict)  # DispatchConfig overrides for "dyq"
+    dispatch: dict = dataclasses.field(default_factory=dict)  # DispatchConfig.from_dict overrides for "dyq"
+    weights: str = "rtn"  # "rtn" (round to nearest) or "smoothquant"
+    inverted: bool = False  # "dyq" with the ladder reversed
+    schedule: str | None = None  # "shares" or "runs": a "schedule" drawn from DyQ's episode on the seed
 
     def dispatch_config(self) -> "dyq.DispatchConfig":
-        return dyq.DispatchConfig(**self.dispatch)
+        return dyq.DispatchConfig.from_dict(dict(self.dispatch))
 
 
-CONFIGS: dict[str, RunConfig] = {
-    "fp32": RunConfig("fp32", "float"),
-    "w4a16": RunConfig("w4a16", "static", 16),
-    "w4a8": RunConfig("w4a8", "static", 8),
-    "w4a4": RunConfig("w4a4", "static", 4),
-    "w4a2": RunConfig("w4a2", "static", 2),
-    "dyq": RunConfig("dyq", "dyq"),
-}
+CONFIGS: dict[str, RunConfig] = {c.name: c for c in (
+    RunConfig("fp32", "float"),
+    RunConfig("w4a16", "static", 16),
+    RunConfig("w4a8", "static", 8),
+    RunConfig("w4a4", "static", 4),
+    RunConfig("w4a2", "static", 2),
+    RunConfig("dyq", "dyq"),
+    RunConfig("smoothquant_w4a4", "static", 4, weights="smoothquant"),
+    RunConfig("dyq_no_hysteresis", "dyq", dispatch={"hysteresis": "none"}),
+    RunConfig("dyq_motion_only", "dyq", dispatch={"fusion_weight": 1.0}),
+    RunConfig("dyq_jerk_only", "dyq", dispatch={"fusion_weight": 0.0}),
+    RunConfig("dyq_inverted", "dyq", inverted=True),
+    RunConfig("random_schedule", "schedule", schedule="shares"),
+    RunConfig("random_runs", "schedule", schedule="runs"),
+)}
+
+
+class InvertedLadderDispatcher(dyq.KinematicDispatcher):
+    """The dispatcher with Φ reversed (2 <-> 16, 4 <-> 8): a sanity control, fine motion gets low widths.
+    Warm-up still runs at 16 bits and the hysteresis acts on the reversed targets."""
+
+    REVERSED = {2: 16, 4: 8, 8: 4, 16: 2}
+
+    def allocate(self, sensitivity: float) -> int:
+        return self.REVERSED[super().allocate(sensitivity)]
+
+
+def make_schedule(kind: str, dyq_bits: list[int], seed: int, length: int) -> list[int]:
+    """A random width schedule with DyQ's statistics on one seed (``dyq_bits``: its per-step widths).
+
+    ``"shares"``: each step's width drawn independently with DyQ's shares. ``"runs"``: DyQ's runs of
+    equal width in a random order, reshuffled and appended again while the episode needs more steps.
+    Seeded by the episode seed, so a schedule is reproducible and differs between seeds.
+    """
+    if not dyq_bits:
+        raise ValueError("dyq_bits must hold DyQ's widths of at least one step")
+    if kind == "shares":
+        widths, counts = np.unique(np.asarray(dyq_bits), return_counts=True)
+        rng = np.random.default_rng([seed, 1])
+        return [int(b) for b in rng.choice(widths, size=length, p=counts / counts.sum())]
+    if kind == "runs":
+        runs: list[list[int]] = []
+        for b in dyq_bits:
+            if runs and runs[-1][0] == b:
+                runs[-1].append(b)
+            else:
+                runs.append([b])
+        rng = np.random.default_rng([seed, 2])
+        schedule: list[int] = []
+        while len(schedule) < length:
+            for i in rng.permutation(len(runs)):
+                schedule += runs[i]
+        return schedule[:length]
+    raise ValueError(f"schedule kind must be 'shares' or 'runs', got {kind!r}")
 
 
 def run_config(name: str) -> RunConfig:
@@ -81,20 +143,57 @@ def _count_difference(after: dict[int, int], before: dict[int, int]) -> dict[str
 
 
 class PolicyRunner:
-    """The policy of one checkpoint in every configuration: the float model and one INT4 copy bound to
-    a precision flag (built once per process, shared by all quantized configurations)."""
+    """The policy of one checkpoint in every configuration: the float model and its INT4 copies, one per
+    weight method (built once per process on first use), all bound to one precision flag.
 
-    def __init__(self, policy: TokenPolicy):
+    ``calibration``: training observations and actions for methods that calibrate (SmoothQuant);
+    :meth:`load` takes the sample that ``dyq train`` saved beside the checkpoint.
+    """
+
+    def __init__(self, policy: TokenPolicy, calibration: tuple[np.ndarray, np.ndarray] | None = None):
         self.float_policy = policy
-        self.quantized = policy.copy()
+        self.calibration = calibration
         self.flag = dyq.PrecisionFlag(16)
-        self.report = dyq.quantize_model(self.quantized.model, group_size=GROUP_SIZE, flag=self.flag)
-        if self.report.skipped and any(name != "lm_head" for name in self.report.skipped):
-            raise ValueError(f"the policy has layers dyq cannot convert: {self.report.skipped}")
+        self._quantized: dict[str, TokenPolicy] = {}
+        self.reports: dict[str, "dyq.QuantizationReport"] = {}
+        self.quantized = self.quantized_policy("rtn")
+        self.report = self.reports["rtn"]
 
     @classmethod
     def load(cls, checkpoint) -> "PolicyRunner":
-        return cls(TokenPolicy.load(checkpoint))
+        from .train import CALIBRATION_FILE, load_calibration_set
+
+        calibration = load_calibration_set(checkpoint) if (Path(checkpoint) / CALIBRATION_FILE).is_file() else None
+        return cls(TokenPolicy.load(checkpoint), calibration)
+
+    def quantized_policy(self, weights: str) -> TokenPolicy:
+        if weights in self._quantized:
+            return self._quantized[weights]
+        policy = self.float_policy.copy()
+        if weights == "smoothquant":
+            self._smooth(policy)
+        elif weights != "rtn":
+            raise ValueError(f"weights must be 'rtn' or 'smoothquant', got {weights!r}")
+        report = dyq.quantize_model(policy.model, group_size=GROUP_SIZE, flag=self.flag)
+        if any(name != "lm_head" for name in report.skipped):
+            raise ValueError(f"the policy has layers dyq cannot convert: {report.skipped}")
+        self.reports[weights] = report
+        self._quantized[weights] = policy
+        return policy
+
+    def _smooth(self, policy: TokenPolicy) -> None:
+        from ..smoothing import activation_maxima, smooth_llama
+
+        if self.calibration is None:
+            raise ValueError("SmoothQuant needs calibration data: a checkpoint saved by dyq train, or "
+                             "PolicyRunner(policy, calibration=(observations, actions))")
+        ids, _ = policy.sequences(*self.calibration)
+        with torch.no_grad():
+            maxima = activation_maxima(policy.model, lambda: policy.model(input_ids=ids))
+            smooth_llama(policy.model, maxima, alpha=SMOOTHQUANT_ALPHA)
+
+    def policy_for(self, config: RunConfig) -> TokenPolicy:
+        return self.float_policy if config.kind == "float" else self.quantized_policy(config.weights)
 
 
 @dataclasses.dataclass
@@ -126,29 +225,36 @@ class Episode:
 
 
 def run_episode(runner: PolicyRunner, task: str, config: RunConfig | str, seed: int, *, env=None,
-                frames: list | None = None, camera: str = "frontview", frame_size: int = 256) -> Episode:
+                schedule: list[int] | None = None, frames: list | None = None, camera: str = "frontview",
+                frame_size: int = 256) -> Episode:
     """Runs one seeded episode of ``task`` under ``config``; stops at success or at the task's horizon.
 
-    ``frames``, if given, receives one RGB frame per step (needs an environment with an offscreen
-    renderer, see :func:`dyq.sim.envs.make_env`).
+    ``schedule``: the per-step widths of a ``"schedule"`` configuration (:func:`make_schedule`), at
+    least the task's horizon long. ``frames``, if given, receives one RGB frame per step (needs an
+    environment with an offscreen renderer, see :func:`dyq.sim.envs.make_env`).
     """
     if isinstance(config, str):
         config = run_config(config)
     spec = envs.spec(task)
+    if config.kind == "schedule":
+        if schedule is None or len(schedule) < spec.horizon:
+            raise ValueError(f"configuration {config.name} needs a schedule of at least {spec.horizon} widths")
+        schedule = [check_bits(b, "schedule") for b in schedule]
+    elif schedule is not None:
+        raise ValueError(f"configuration {config.name} takes no schedule")
     if env is None:
         env = envs.make_env(task)
     obs = envs.reset_env(env, seed)
-    if config.kind == "float":
-        policy = runner.float_policy
-    else:
-        policy = runner.quantized
+    policy = runner.policy_for(config)
     runtime = None
     if config.kind == "dyq":
-        runtime = dyq.DyQRuntime(dyq.KinematicDispatcher(config.dispatch_config()), runner.flag,
-                                 prefill_bits="previous")
+        dispatcher_class = InvertedLadderDispatcher if config.inverted else dyq.KinematicDispatcher
+        runtime = dyq.DyQRuntime(dispatcher_class(config.dispatch_config()), runner.flag, prefill_bits="previous")
         runtime.reset()
     elif config.kind == "static":
         runner.flag.bits = config.bits
+    else:
+        runner.flag.bits = 16  # the first prefill of a schedule, as DyQ's
 
     log: dict[str, list] = {k: [] for k in ("bits", "prefill_kernel_bits", "decode_kernel_bits", "sensitivity",
                                             "smoothed_fineness", "smoothed_jerk", "actions", "latency_ms")}
@@ -172,6 +278,11 @@ def run_episode(runner: PolicyRunner, task: str, config: RunConfig | str, seed: 
                 sensitivity = stats.sensitivity
                 fineness = runtime.dispatcher.smoothed_fineness
                 jerk = runtime.dispatcher.smoothed_jerk
+            elif schedule is not None:
+                prefilled = prefill()  # at the previous step's width, still in the flag
+                bits = runner.flag.bits = schedule[len(log["bits"])]
+                bins = policy.decode(prefilled)
+                sensitivity = fineness = jerk = math.nan
             else:
                 bins = policy.decode(prefill())
                 bits = config.bits if config.kind == "static" else 16
