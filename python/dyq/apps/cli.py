@@ -12,6 +12,8 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "dispatch": ("dyq.apps.dispatch_cli", "dispatcher tools: replay a trajectory, write a demo trajectory or config"),
     "train": ("dyq.sim.train", "behavior-clone a robot policy on demonstrations (robomimic HDF5)"),
     "eval": ("dyq.sim.evaluate", "closed-loop evaluation: task x configuration x seed grid, cached and resumable"),
+    "profile": ("dyq.sim.profile", "step-wise perturbation profile of a task's policy; proxy correlations (Sec. III)"),
+    "calibrate": ("dyq.sim.profile", "calibrate the dispatcher (lambda, Theta, K, theta_fp) on calibration seeds"),
 }
 
 

@@ -1,0 +1,189 @@
+"""dyq profile / dyq calibrate: the replay restores the reference exactly, a full-precision perturbation
+changes nothing, results are cached and resumed, calibration writes a config the dispatcher loads, and
+bad command lines are refused clearly.
+
+The policy is untrained, so it never lifts the cube: the task's success test is replaced by "reached
+step SUCCESS_STEP", which makes every episode a successful reference of that length."""
+import json
+
+import numpy as np
+import pytest
+import torch
+
+pytest.importorskip("robosuite")
+pytest.importorskip("transformers")
+
+import dyq  # noqa: E402
+from dyq.analysis import dispatch_trace  # noqa: E402
+from dyq.apps import cli  # noqa: E402
+from dyq.sim import envs  # noqa: E402
+from dyq.sim import profile as prof  # noqa: E402
+from dyq.sim.policy import PolicyConfig, TokenPolicy  # noqa: E402
+from dyq.sim.rollout import PolicyRunner  # noqa: E402
+from dyq.sim.tokens import BinTokenizer  # noqa: E402
+
+TASK = "lift"
+HORIZON = 20
+SUCCESS_STEP = 15
+
+
+@pytest.fixture(scope="module", autouse=True)
+def short_successful_task():
+    spec = envs.TASKS[TASK]
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setitem(envs.TASKS, TASK, envs.TaskSpec(spec.env_name, HORIZON, spec.object_key, spec.yaw_period))
+        patch.setattr(envs, "check_success", lambda env: env.timestep >= SUCCESS_STEP)
+        yield
+
+
+@pytest.fixture(scope="module")
+def env():
+    return envs.make_env(TASK, horizon=HORIZON)
+
+
+@pytest.fixture(scope="module")
+def policy(env):
+    """An untrained policy whose tokenizers span the task's real observations (its actions vary)."""
+    rng = np.random.default_rng(0)
+    first = envs.observation_vector(TASK, envs.reset_env(env, 0))
+    observations = first + rng.normal(scale=0.05, size=(64, first.shape[0]))
+    actions = rng.uniform(-1, 1, size=(64, 7))
+    config = PolicyConfig(task=TASK, observation_names=envs.observation_names(TASK),
+                          observation_tokenizer=BinTokenizer.range_with_margin(observations).to_dict(),
+                          action_tokenizer=BinTokenizer.percentiles(actions).to_dict(),
+                          hidden_size=128, intermediate_size=256, layers=2, heads=2)
+    torch.manual_seed(0)
+    policy = TokenPolicy(config)
+    with torch.no_grad():  # bf16-exact, so the saved checkpoint is the same policy
+        for p in policy.model.parameters():
+            p.copy_(p.to(torch.bfloat16).float())
+    return policy
+
+
+@pytest.fixture(scope="module")
+def runner(policy):
+    return PolicyRunner(policy)
+
+
+@pytest.fixture(scope="module")
+def reference(runner, env):
+    return prof.reference_episode(runner, TASK, prof.CALIBRATION_SEEDS[0], env)
+
+
+@pytest.fixture(scope="module")
+def checkpoint(policy, tmp_path_factory):
+    return policy.save(tmp_path_factory.mktemp("policy") / "lift")
+
+
+def test_reference_is_a_seeded_full_precision_episode(runner, env, reference):
+    assert reference.success and reference.steps == SUCCESS_STEP
+    again = prof.reference_episode(runner, TASK, reference.seed, env)
+    np.testing.assert_array_equal(again.actions, reference.actions)
+    np.testing.assert_array_equal(again.final_object, reference.final_object)
+    assert np.all(np.abs(reference.actions) <= 1.0)
+    assert prof.Reference.from_dict(json.loads(json.dumps(reference.to_dict()))).to_dict() == reference.to_dict()
+
+
+def test_replay_restores_every_step_exactly(env, reference):
+    for t in (0, 1, reference.steps // 2, reference.steps - 1):
+        obs = prof.restore(env, reference, t)
+        np.testing.assert_array_equal(envs.observation_vector(TASK, obs), reference.observations[t])
+    obs = prof.restore(env, reference, reference.steps - 1)
+    obs, _, _, _ = envs.step_env(env, reference.actions[-1])
+    np.testing.assert_array_equal(obs["robot0_eef_pos"], reference.final_eef)
+    np.testing.assert_array_equal(envs.object_pos(TASK, obs), reference.final_object)
+    with pytest.raises(ValueError, match="t must be in"):
+        prof.restore(env, reference, reference.steps)
+
+
+def test_replay_refuses_a_reference_it_cannot_reproduce(env, reference):
+    other = prof.Reference.from_dict(reference.to_dict())
+    other.observations[3] += 1.0
+    with pytest.raises(RuntimeError, match="did not reproduce"):
+        prof.restore(env, other, 3)
+
+
+def test_full_precision_perturbation_changes_nothing(runner, env, reference):
+    for t in (0, reference.steps // 2):
+        result = prof.perturb(runner, reference, t, 16, env)
+        assert result.action_error == 0.0 and result.terminal_deviation == 0.0
+        assert result.success == reference.success
+
+
+def test_low_width_perturbation_error_is_the_teacher_forced_error(runner, env, reference):
+    errors = prof.teacher_forced_errors(runner, reference, widths=(2,))[2]
+    t = int(np.flatnonzero(errors > 0)[0])
+    result = prof.perturb(runner, reference, t, 2, env)
+    assert result.action_error == errors[t]
+    assert result.terminal_deviation > 0.0 and result.simulated
+
+
+def test_proxy_trace_is_what_the_dispatcher_saw(reference):
+    trace = prof.proxy_trace(reference.actions)
+    S, _ = dispatch_trace(reference.actions, dyq.DispatchConfig())
+    np.testing.assert_array_equal(trace["fused_sensitivity"], S)
+    assert np.isnan(trace["motion_fineness"][0]) and np.isfinite(trace["motion_fineness"][-1])
+
+
+def test_profile_is_resumed_from_its_cache(runner, env, tmp_path, monkeypatch):
+    store = prof.Store(tmp_path, TASK, "digest")
+    budget = prof.ProfileBudget(episodes=1, stride=7, widths=(4,))
+    first = prof.profile(runner, TASK, store, budget, env, progress=False)
+    assert [(r.t, r.act_bits) for r in first["records"]] == [(0, 4), (7, 4), (14, 4)]
+    assert first["simulated"] + first["zero_error"] == 3
+
+    def no_simulation(*args, **kwargs):
+        raise AssertionError("a cached step was simulated again")
+
+    monkeypatch.setattr(prof, "perturb", no_simulation)
+    monkeypatch.setattr(prof, "reference_episode", no_simulation)
+    again = prof.profile(runner, TASK, store, budget, env, progress=False)
+    assert repr(again["records"]) == repr(first["records"])  # repr: NaN proxies of the warm-up compare equal
+
+
+def test_profile_and_calibrate_commands_write_results_and_a_loadable_config(checkpoint, tmp_path):
+    common = ["--checkpoint", str(checkpoint), "--cache", str(tmp_path / "cache"), "--figures", str(tmp_path),
+              "--no-progress"]
+    profile_json, config_json = tmp_path / "profile.json", tmp_path / "dispatch.json"
+    assert cli.main(["profile", TASK, "--episodes", "2", "--stride", "2", "--widths", "4",
+                     "--out", str(profile_json), *common]) == 0
+    profiled = json.loads(profile_json.read_text())
+    for key in ("pearson_motion_fineness", "pearson_angular_jerk", "pearson_fused", "spearman_motion_fineness",
+                "spearman_angular_jerk", "spearman_fused", "episodes", "steps"):
+        assert key in profiled
+    assert profiled["seeds"] == [5000, 5001] and profiled["budget"] == {"episodes": 2, "stride": 2, "widths": [4]}
+    assert (tmp_path / "profile_lift_fig2.png").stat().st_size > 0
+
+    assert cli.main(["calibrate", TASK, "--episodes", "2", "--theta-fp", "0.2,0.9", "--profile", str(profile_json),
+                     "--out", str(tmp_path / "calibration.json"), "--config-out", str(config_json), *common]) == 0
+    config = dyq.DispatchConfig.load(config_json)
+    calibration = json.loads((tmp_path / "calibration.json").read_text())
+    assert config.theta_fp == calibration["theta_fp"]["theta_fp"] in (0.2, 0.9)
+    assert config.theta_2_4 <= config.theta_4_8 <= config.theta_fp
+    assert config.fusion_weight == calibration["lambda"]["value"] and config.delay_window == calibration["K"]["value"]
+    assert [row["theta_fp"] for row in calibration["theta_fp"]["sweep"]] == [0.2, 0.9]
+    assert (tmp_path / "calibration_lift_theta_fp.png").stat().st_size > 0
+    run = prof.calibrated_run_config(TASK, config_json)
+    assert run.name == "dyq_calibrated" and run.dispatch_config() == config
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["profile", "stack"], "invalid choice: 'stack'"),
+    (["profile", TASK, "--widths", "3"], "expected comma-separated widths"),
+    (["profile", TASK, "--stride", "0"], "expected an integer >= 1"),
+    (["calibrate", TASK, "--theta-fp", "0.5,-1"], "expected comma-separated thresholds"),
+])
+def test_bad_arguments_are_refused_by_the_parser(argv, message, capsys):
+    with pytest.raises(SystemExit) as exit_:
+        cli.main(argv)
+    assert exit_.value.code == 2
+    assert message in capsys.readouterr().err
+
+
+def test_missing_inputs_are_reported(checkpoint, tmp_path, capsys):
+    assert cli.main(["profile", TASK, "--checkpoint", str(tmp_path / "none")]) == 2
+    assert "has no policy.json" in capsys.readouterr().err
+    assert cli.main(["calibrate", TASK, "--checkpoint", str(checkpoint), "--profile", str(tmp_path / "none.json")]) == 2
+    assert "run `dyq profile lift` first" in capsys.readouterr().err
+    with pytest.raises(FileNotFoundError, match="run `dyq calibrate lift` first"):
+        prof.calibrated_run_config(TASK, tmp_path / "none.json")
