@@ -61,7 +61,6 @@ class Expert:
 
     task: str
     hover = 0.08  # approach height above the grasp point (m)
-    grasp_dz = 0.0  # grasp height relative to the grasp point
     xy_tol = 0.01  # before descending, and to close
     z_tol = 0.01  # to close
     yaw_tol = np.radians(8.0)
@@ -92,7 +91,7 @@ class Expert:
         if self.phase in ("carry", "lower") and not self.grasped(obs):
             self.phase = "approach"  # dropped it: start over
         if self.phase == "approach":
-            target = grasp + [0.0, 0.0, self.hover + self.grasp_dz]
+            target = grasp + [0.0, 0.0, self.hover]
             # Gripper well above the object: go straight for the hover point; otherwise rise first so the
             # fingers do not sweep the object away.
             if eef[2] < grasp[2] + 0.5 * self.hover and np.linalg.norm(grasp[:2] - eef[:2]) > 2 * self.xy_tol:
@@ -102,22 +101,23 @@ class Expert:
                 self.phase = "descend"
             return self._move(obs, target, OPEN)
         if self.phase == "descend":
-            target = grasp + [0.0, 0.0, self.grasp_dz]
-            if np.linalg.norm(target[:2] - eef[:2]) < self.xy_tol and abs(target[2] - eef[2]) < self.z_tol:
+            # A funnel: the lower the hand, the better aligned it must be. All the way down within twice the
+            # xy tolerance, back at ``hover`` above the grasp point at 5x; so a push from noise or contact
+            # raises the hand a little while it re-centres instead of restarting the approach.
+            xy_err = float(np.linalg.norm(grasp[:2] - eef[:2]))
+            lift = self.hover * np.clip((xy_err - 2 * self.xy_tol) / (3 * self.xy_tol), 0.0, 1.0)
+            target = grasp + [0.0, 0.0, lift]
+            if xy_err < self.xy_tol and abs(target[2] - eef[2]) < self.z_tol:
                 self.phase, self.closed_for = "close", 0
-            elif np.linalg.norm(grasp[:2] - eef[:2]) > 4 * self.xy_tol:
-                self.phase = "approach"  # the object moved away: re-aim from above
+            elif xy_err > 0.05:
+                self.phase = "approach"  # the object was knocked away: aim again from above
             return self._move(obs, target, OPEN)
         if self.phase == "close":
             self.closed_for += 1
             if self.closed_for >= self.close_steps:
                 self.phase = "carry"
-                self.carry_start(obs)
-            return self._move(obs, grasp + [0.0, 0.0, self.grasp_dz], CLOSE)
+            return self._move(obs, grasp, CLOSE)
         return self.carry(obs)
-
-    def carry_start(self, obs: dict) -> None:
-        """Hook at the moment of the grasp."""
 
     def carry(self, obs: dict) -> np.ndarray:
         raise NotImplementedError
