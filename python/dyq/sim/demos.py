@@ -27,8 +27,8 @@ import numpy as np
 from . import envs, experts
 
 # Execution noise (std, in action units) per task, chosen so the noisy expert still meets its success target
-# within the horizon: measured 50/50 (lift), 50/50 (can) at 0.2, and 30/30 at 0.1 but 28/30 at 0.2 with
-# long detours for the square nut, whose 6 mm grasp tolerance the noise makes slow to meet.
+# within the horizon (seeds 0..49): lift and can 50/50 at 0.2; the square nut 50/50 at 0.1 but 28/30 at 0.2
+# with long detours, since its 6 mm grasp tolerance is slow to meet under more noise.
 DEFAULT_NOISE = {"lift": 0.2, "pick_place_can": 0.2, "square": 0.1}
 
 ROBOT_OBS_KEYS = ["robot0_eef_pos", "robot0_eef_quat", "robot0_gripper_qpos", "robot0_joint_pos",
