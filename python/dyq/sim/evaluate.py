@@ -268,6 +268,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--cache", type=Path, default=DEFAULT_CACHE)
     parser.add_argument("--out", type=Path, default=DEFAULT_OUT)
     parser.add_argument("--table", type=Path, default=DEFAULT_TABLE)
+    parser.add_argument("--video", type=Path, default=None, metavar="DIR",
+                        help="also record seed 0 of each task (under dyq if evaluated) as DIR/<task>_<config>_seed0.gif")
     parser.add_argument("--no-progress", action="store_true")
 
 
@@ -331,4 +333,13 @@ def main(args: argparse.Namespace) -> int:
     args.table.write_text(markdown_table(data))
     print(markdown_table(data))
     print(f"wrote {args.out} and {args.table}")
+    if args.video is not None:
+        from .rollout import PolicyRunner
+        from .video import record_episode
+
+        config = "dyq" if "dyq" in configs else configs[0]
+        for task in tasks:
+            path = args.video / f"{task}_{config}_seed{seeds[0]}.gif"
+            episode = record_episode(PolicyRunner.load(checkpoints[task]), task, config, seeds[0], path)
+            print(f"wrote {path} ({episode.steps} steps, {'success' if episode.success else 'failure'})")
     return 0
