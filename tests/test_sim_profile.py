@@ -19,7 +19,7 @@ from dyq.apps import cli  # noqa: E402
 from dyq.sim import envs  # noqa: E402
 from dyq.sim import profile as prof  # noqa: E402
 from dyq.sim.policy import PolicyConfig, TokenPolicy  # noqa: E402
-from dyq.sim.rollout import PolicyRunner  # noqa: E402
+from dyq.sim.rollout import PolicyRunner, run_episode  # noqa: E402
 from dyq.sim.tokens import BinTokenizer  # noqa: E402
 
 TASK = "lift"
@@ -125,9 +125,26 @@ def test_proxy_trace_is_what_the_dispatcher_saw(reference):
     assert np.isnan(trace["motion_fineness"][0]) and np.isfinite(trace["motion_fineness"][-1])
 
 
+def test_proxy_trace_is_what_the_closed_loop_dispatcher_saw(runner, env):
+    episode = run_episode(runner, TASK, "dyq", seed=7, env=env)
+    trace = prof.proxy_trace(episode.actions, prime=prof._prime(runner))
+    # The episode logs actions rounded to 6 decimals; the dispatcher saw them unrounded.
+    np.testing.assert_allclose(trace["fused_sensitivity"], episode.sensitivity, rtol=1e-3, atol=1e-4)
+
+
+def test_primed_proxy_trace_is_what_the_primed_closed_loop_dispatcher_saw(policy, env):
+    pytest.importorskip("dyq.sim.dispatch_budget")  # checkpoints that prime the dispatcher
+    prime = np.random.default_rng(1).uniform(-1, 1, size=(300, 7))
+    primed = PolicyRunner(policy, None, (dyq.DispatchConfig(), prime))
+    episode = run_episode(primed, TASK, "dyq", seed=7, env=env)
+    trace = prof.proxy_trace(episode.actions, prime=prof._prime(primed))
+    assert np.isfinite(trace["fused_sensitivity"][2]), "a primed dispatcher has no warm-up"
+    np.testing.assert_allclose(trace["fused_sensitivity"], episode.sensitivity, rtol=1e-3, atol=1e-4)
+
+
 def test_profile_is_resumed_from_its_cache(runner, env, tmp_path, monkeypatch):
     store = prof.Store(tmp_path, TASK, "digest")
-    budget = prof.ProfileBudget(episodes=1, stride=7, widths=(4,))
+    budget = prof.ProfileBudget(episodes=1, widths=(4,), strides=(7,))
     first = prof.profile(runner, TASK, store, budget, env, progress=False)
     assert [(r.t, r.act_bits) for r in first["records"]] == [(0, 4), (7, 4), (14, 4)]
     assert first["simulated"] + first["zero_error"] == 3
@@ -151,7 +168,7 @@ def test_profile_and_calibrate_commands_write_results_and_a_loadable_config(chec
     for key in ("pearson_motion_fineness", "pearson_angular_jerk", "pearson_fused", "spearman_motion_fineness",
                 "spearman_angular_jerk", "spearman_fused", "episodes", "steps"):
         assert key in profiled
-    assert profiled["seeds"] == [5000, 5001] and profiled["budget"] == {"episodes": 2, "stride": 2, "widths": [4]}
+    assert profiled["seeds"] == [5000, 5001] and profiled["budget"] == {"episodes": 2, "widths": [4], "strides": [2]}
     assert (tmp_path / "profile_lift_fig2.png").stat().st_size > 0
 
     assert cli.main(["calibrate", TASK, "--episodes", "2", "--theta-fp", "0.2,0.9", "--profile", str(profile_json),
@@ -170,7 +187,8 @@ def test_profile_and_calibrate_commands_write_results_and_a_loadable_config(chec
 @pytest.mark.parametrize("argv, message", [
     (["profile", "stack"], "invalid choice: 'stack'"),
     (["profile", TASK, "--widths", "3"], "expected comma-separated widths"),
-    (["profile", TASK, "--stride", "0"], "expected an integer >= 1"),
+    (["profile", TASK, "--stride", "0"], "expected a stride >= 1"),
+    (["profile", TASK, "--episodes", "x"], "expected an integer >= 1"),
     (["calibrate", TASK, "--theta-fp", "0.5,-1"], "expected comma-separated thresholds"),
 ])
 def test_bad_arguments_are_refused_by_the_parser(argv, message, capsys):
@@ -181,6 +199,8 @@ def test_bad_arguments_are_refused_by_the_parser(argv, message, capsys):
 
 
 def test_missing_inputs_are_reported(checkpoint, tmp_path, capsys):
+    assert cli.main(["profile", TASK, "--widths", "4", "--stride", "1,2"]) == 2
+    assert "--stride must give one stride or one per width [4]" in capsys.readouterr().err
     assert cli.main(["profile", TASK, "--checkpoint", str(tmp_path / "none")]) == 2
     assert "has no policy.json" in capsys.readouterr().err
     assert cli.main(["calibrate", TASK, "--checkpoint", str(checkpoint), "--profile", str(tmp_path / "none.json")]) == 2

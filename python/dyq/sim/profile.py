@@ -50,7 +50,6 @@ from ..analysis import (
     choose_delay,
     choose_fusion_weight,
     choose_theta_fp,
-    dispatch_trace,
     plot_perturbation_profile,
     plot_proxy_trajectories,
     proxy_correlations,
@@ -80,19 +79,34 @@ SUCCESS_TOLERANCE = {
 
 @dataclasses.dataclass(frozen=True)
 class ProfileBudget:
-    """What ``dyq profile`` samples: ``episodes`` successful references, every ``stride``-th step of
-    each (t = 0, stride, 2 stride, ...), perturbed at each of ``widths``."""
+    """What ``dyq profile`` samples: ``episodes`` successful references, each perturbed at every
+    ``strides[i]``-th step (t = 0, stride, 2 stride, ...) at width ``widths[i]``.
+
+    Only steps whose low-width action differs from the reference's cost a simulation (T - t policy
+    steps); the rest are free, which is why the common W4A4 can afford stride 1 where W4A2, whose
+    action differs at most steps, cannot."""
 
     episodes: int
-    stride: int
     widths: tuple[int, ...]
+    strides: tuple[int, ...]
+
+    def __post_init__(self):
+        if not isinstance(self.episodes, int) or self.episodes < 1:
+            raise ValueError(f"episodes must be an integer >= 1, got {self.episodes!r}")
+        if not self.widths or any(w not in QUANTIZED_WIDTHS for w in self.widths) or len(set(self.widths)) != len(self.widths):
+            raise ValueError(f"widths must be distinct widths from {QUANTIZED_WIDTHS}, got {self.widths!r}")
+        if len(self.strides) != len(self.widths) or any(not isinstance(k, int) or k < 1 for k in self.strides):
+            raise ValueError(f"strides must hold one integer >= 1 per width {self.widths}, got {self.strides!r}")
+
+    def steps(self, width: int, length: int) -> range:
+        return range(0, length, self.strides[self.widths.index(width)])
 
 
 # Sized for about 15 minutes a task on one niced, shared core (docs/profiling.md, "Budgets").
 PROFILE_BUDGETS = {
-    "lift": ProfileBudget(episodes=6, stride=2, widths=(4, 2)),
-    "pick_place_can": ProfileBudget(episodes=4, stride=8, widths=(4,)),
-    "square": ProfileBudget(episodes=4, stride=8, widths=(4,)),
+    "lift": ProfileBudget(episodes=8, widths=(4, 2), strides=(1, 4)),
+    "pick_place_can": ProfileBudget(episodes=3, widths=(4,), strides=(2,)),
+    "square": ProfileBudget(episodes=3, widths=(4,), strides=(2,)),
 }
 CALIBRATION_EPISODES = 20
 # theta_fp sweep (Figure 7): these quantiles of the calibration steps' S_t.
@@ -229,12 +243,19 @@ def teacher_forced_errors(runner: PolicyRunner, reference: Reference,
 PROXY_FIELDS = ("motion_fineness", "angular_jerk", "smoothed_fineness", "smoothed_jerk", "fused_sensitivity")
 
 
-def proxy_trace(actions, config: "dyq.DispatchConfig | None" = None) -> dict[str, np.ndarray]:
-    """M_t, J_t, M~_t, J~_t and S_t that a fresh dispatcher reports over an episode's executed actions,
-    aligned as :func:`dyq.analysis.dispatch_trace`: entry t is what it saw when choosing step t's
-    precision (after ``step(a_{t-1})``); NaN at t = 0 and while it warms up."""
+def proxy_trace(actions, config: "dyq.DispatchConfig | None" = None, prime=None) -> dict[str, np.ndarray]:
+    """M_t, J_t, M~_t, J~_t and S_t that the closed loop's dispatcher reports over an episode's
+    executed actions, aligned as :func:`dyq.analysis.dispatch_trace`: entry t is what it saw when
+    choosing step t's precision (after ``step(a_{t-1})``); NaN at t = 0 and while it warms up.
+
+    ``prime``: the actions that fill its scale histories before the episode, as the closed loop does
+    with a checkpoint's ``dispatch.json`` (``runner.dispatch_prime``); None starts it fresh."""
     actions = np.asarray(actions, dtype=np.float64)
     dispatcher = dyq.KinematicDispatcher(config or dyq.DispatchConfig())
+    if prime is not None:
+        from .dispatch_budget import prime as prime_dispatcher
+
+        prime_dispatcher(dispatcher, np.asarray(prime, dtype=np.float64))
     trace = {name: np.full(len(actions), math.nan) for name in PROXY_FIELDS}
     attribute = {"fused_sensitivity": "sensitivity"}
     for t in range(1, len(actions)):
@@ -312,12 +333,9 @@ def profile(runner: PolicyRunner, task: str, store: Store, budget: ProfileBudget
     (ProfiledStep, proxies from the default DispatchConfig on the reference's actions), and the
     counts ``simulated`` and ``zero_error`` (recorded without simulating).
     """
-    for width in budget.widths:
-        if width not in QUANTIZED_WIDTHS:
-            raise ValueError(f"profiled widths must be in {QUANTIZED_WIDTHS}, got {width!r}")
     env = envs.make_env(task) if env is None else env
     found, tried = references(runner, task, store, budget.episodes, env, progress)
-    todo = [(r, b, t) for r in found for b in budget.widths for t in range(0, r.steps, budget.stride)]
+    todo = [(r, b, t) for r in found for b in budget.widths for t in budget.steps(b, r.steps)]
     records, simulated, zero_error = [], 0, 0
     bar = _bar(len(todo), f"{task} perturbations", progress)
     done: dict[tuple[int, int], dict] = {}
@@ -344,13 +362,18 @@ def profile(runner: PolicyRunner, task: str, store: Store, budget: ProfileBudget
         bar.update(1)
         bar.set_postfix(simulated=simulated, zero_error=zero_error)
     bar.close()
-    proxies = {r.seed: proxy_trace(r.actions) for r in found}
+    proxies = {r.seed: proxy_trace(r.actions, prime=_prime(runner)) for r in found}
     steps = [ProfiledStep(episode=r.seed, t=t, act_bits=width, action_error=result["action_error"],
                           terminal_deviation=result["terminal_deviation"], success=bool(result["success"]),
                           **{name: float(proxies[r.seed][name][t]) for name in PROXY_FIELDS})
              for r, width, t, result in records]
     return {"references": found, "tried_seeds": tried, "records": steps, "simulated": simulated,
             "zero_error": zero_error}
+
+
+def _prime(runner: PolicyRunner):
+    """The actions that prime the closed loop's dispatcher for this runner's checkpoint (None: fresh)."""
+    return getattr(runner, "dispatch_prime", None)
 
 
 def load_records(data: dict) -> list[ProfiledStep]:
@@ -415,7 +438,10 @@ def calibrate(runner: PolicyRunner, task: str, store: Store, records: Sequence[P
     ``records``: the task's profile (``dyq profile``), whose W4A<profile_width> s_t choose lambda and
     fit D_acc, eta. Theta and K come from teacher-forced errors on ``episodes`` successful
     calibration references; theta_fp from a closed-loop sweep on the first ``sweep_episodes`` of them.
-    Returns everything measured; ``config`` is the DispatchConfig to write.
+    S_t for the bound and Theta is what the closed loop's dispatcher computes (:func:`proxy_trace`,
+    primed as the runner's checkpoint says); lambda and K are chosen by ``choose_fusion_weight`` and
+    ``choose_delay``, which replay through fresh dispatchers. Returns everything measured; ``config``
+    is the DispatchConfig to write.
     """
     base = base or dyq.DispatchConfig()
     tolerance = SUCCESS_TOLERANCE[task] if tolerance is None else tolerance
@@ -442,7 +468,8 @@ def calibrate(runner: PolicyRunner, task: str, store: Store, records: Sequence[P
     # 2. D_acc, eta from the tolerance and the line s_t ~ alpha S_t + beta. A slope <= 0 (S_t does not
     # rise with s_t) leaves the flat bound, the eta -> infinity limit of Eq. 5 with D_acc / eta =
     # tolerance / mean s_t: every S gets the same error budget.
-    S_profile = np.concatenate([dispatch_trace(r.actions, fused)[0] for r in profile_refs])
+    prime = _prime(runner)
+    S_profile = np.concatenate([proxy_trace(r.actions, fused, prime)["fused_sensitivity"] for r in profile_refs])
     s_profile = np.concatenate(measured)
     defined = np.isfinite(S_profile) & np.isfinite(s_profile)
     if defined.sum() < 2 or np.ptp(S_profile[defined]) == 0.0:
@@ -462,7 +489,7 @@ def calibrate(runner: PolicyRunner, task: str, store: Store, records: Sequence[P
 
     # 3. Theta from the teacher-forced errors of every calibration step where S_t is defined.
     errors = [cached_teacher_errors(runner, r, store) for r in found]
-    S_all = [dispatch_trace(r.actions, fused)[0] for r in found]
+    S_all = [proxy_trace(r.actions, fused, prime)["fused_sensitivity"] for r in found]
     warm = [np.isfinite(S) for S in S_all]
     S_warm = np.concatenate([S[w] for S, w in zip(S_all, warm)])
     thresholds = calibrate_thresholds(S_warm, {b: np.concatenate([e[b][w] for e, w in zip(errors, warm)])
@@ -489,7 +516,7 @@ def calibrate(runner: PolicyRunner, task: str, store: Store, records: Sequence[P
         "references": found, "tried_seeds": tried, "profiled_seeds": profiled,
         "fusion_weight": fusion, "bound": bound, "thresholds": thresholds, "theta_fp_ceiling": ceiling,
         "delay": delay, "sweep": sweep, "sweep_seeds": sweep_seeds, "knee": knee, "config": config,
-        "calibration_steps": int(S_warm.size),
+        "calibration_steps": int(S_warm.size), "dispatcher_primed": prime is not None,
     }
 
 
@@ -499,9 +526,8 @@ def calibrated_run_config(task: str, path: str | Path | None = None) -> RunConfi
     path = Path(path) if path is not None else RESULTS / f"dispatch_{task}.json"
     if not path.is_file():
         raise FileNotFoundError(f"{path} does not exist: run `dyq calibrate {task}` first")
-    data = json.loads(path.read_text())
-    dyq.DispatchConfig.from_dict(data)  # validate before any episode runs
-    return RunConfig("dyq_calibrated", "dyq", dispatch=data)
+    # Every field, by its readable name: the whole calibrated config, whatever base it is applied to.
+    return RunConfig("dyq_calibrated", "dyq", dispatch=dyq.DispatchConfig.load(path).to_dict())
 
 
 # -- figures ----------------------------------------------------------------------------------------
@@ -570,6 +596,16 @@ def _widths(text: str) -> tuple[int, ...]:
     return widths
 
 
+def _strides(text: str) -> tuple[int, ...]:
+    try:
+        strides = tuple(int(k) for k in text.split(","))
+    except ValueError:
+        strides = ()
+    if not strides or any(k < 1 for k in strides):
+        raise argparse.ArgumentTypeError(f"expected a stride >= 1 or comma-separated strides, got {text!r}")
+    return strides
+
+
 def _thetas(text: str) -> list[float]:
     try:
         values = sorted({float(v) for v in text.split(",") if v})
@@ -601,8 +637,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--no-progress", action="store_true")
     if command == "profile":
         parser.add_argument("--episodes", type=_positive, help="successful references to profile (default: per task)")
-        parser.add_argument("--stride", type=_positive, help="perturb every stride-th step (default: per task)")
         parser.add_argument("--widths", type=_widths, help="comma-separated widths to inject (default: per task)")
+        parser.add_argument("--stride", type=_strides,
+                            help="perturb every stride-th step: one stride, or one per width (default: per task)")
     else:
         parser.add_argument("--episodes", type=_positive, default=CALIBRATION_EPISODES,
                             help="successful calibration references (teacher-forced errors, Theta, K)")
@@ -633,10 +670,20 @@ def _write(path: Path, data: dict) -> None:
     path.write_text(json.dumps(_jsonable(data), indent=1) + "\n")
 
 
-def _run_profile(args, runner: PolicyRunner, store: Store, header: dict) -> int:
+def _budget(args) -> ProfileBudget:
+    """The profile's budget: the task's default, with the command line's changes."""
     default = PROFILE_BUDGETS[args.task]
-    budget = ProfileBudget(args.episodes or default.episodes, args.stride or default.stride,
-                           args.widths or default.widths)
+    widths = args.widths or default.widths
+    strides = args.stride or (default.strides if widths == default.widths else (max(default.strides),))
+    if len(strides) == 1:
+        strides = strides * len(widths)
+    if len(strides) != len(widths):
+        raise ValueError(f"--stride must give one stride or one per width {list(widths)}, got {list(strides)}")
+    return ProfileBudget(args.episodes or default.episodes, widths, strides)
+
+
+def _run_profile(args, runner: PolicyRunner, store: Store, header: dict) -> int:
+    budget = _budget(args)
     start = time.perf_counter()
     result = profile(runner, args.task, store, budget, progress=not args.no_progress)
     records = result["records"]
@@ -713,6 +760,7 @@ def _run_calibrate(args, runner: PolicyRunner, store: Store, header: dict) -> in
         "config": json.loads(config_out.read_text()),
         "seeds": [r.seed for r in result["references"]], "tried_seeds": result["tried_seeds"],
         "profiled_seeds": result["profiled_seeds"], "calibration_steps": result["calibration_steps"],
+        "dispatcher_primed": result["dispatcher_primed"],
         "lambda": {"value": result["fusion_weight"]["fusion_weight"],
                    "rule": "largest Spearman rho of S_t with the W4A4 s_t (ties: smaller lambda)",
                    "table": [{"lambda": round(weight, 4), "spearman": rho, "steps": steps}
@@ -753,6 +801,8 @@ def main(args: argparse.Namespace) -> int:
 
     torch.set_num_threads(args.threads)
     try:
+        if args.command == "profile":
+            _budget(args)  # refuse a bad budget before loading anything
         checkpoint = args.checkpoint or default_checkpoint(args.task)
         for name in ("policy.json", "model.safetensors"):
             if not (checkpoint / name).is_file():
