@@ -26,9 +26,10 @@ DyQ in the loop, per control step t (paper Algorithm 1 and Sec. V-B):
 3. the runtime publishes b*_t into the precision flag, and the **decode** of the 7 action tokens runs at
    b*_t; every GEMM reads the flag itself.
 
-The dispatcher's configuration for ``dyq`` is :class:`dyq.DispatchConfig`'s defaults (the paper's
-windows and θ_fp, neutral Θ, λ and K), fixed before any closed-loop result was seen; calibration per
-task writes another configuration. Each episode resets the dispatcher with no history, so an episode is
+The dispatcher's configuration for ``dyq`` is the checkpoint's width budget (:mod:`dyq.sim.dispatch_budget`:
+the ladder at fixed percentiles of S_t on the training demonstrations, the package's λ, K and windows),
+fixed before any closed-loop result was seen; calibration per task writes another configuration. Each
+episode starts a new dispatcher whose scale histories are primed with training actions, so an episode is
 a function of its seed alone and can be cached and run in any order.
 
 The per-step log keeps the bits chosen, the bits each GEMM actually ran at (counted by the kernels,
@@ -63,13 +64,15 @@ class RunConfig:
     name: str
     kind: str  # "float", "static", "dyq" or "schedule"
     bits: int | None = None  # the fixed width of a "static" configuration
-    dispatch: dict = dataclasses.field(default_factory=dict)  # DispatchConfig.from_dict overrides for "dyq"
+    dispatch: dict = dataclasses.field(default_factory=dict)  # DispatchConfig.replace overrides for "dyq"
     weights: str = "rtn"  # "rtn" (round to nearest) or "smoothquant"
     inverted: bool = False  # "dyq" with the ladder reversed
     schedule: str | None = None  # "shares" or "runs": a "schedule" drawn from DyQ's episode on the seed
 
-    def dispatch_config(self) -> "dyq.DispatchConfig":
-        return dyq.DispatchConfig.from_dict(dict(self.dispatch))
+    def dispatch_config(self, base: "dyq.DispatchConfig | None" = None) -> "dyq.DispatchConfig":
+        """The dispatcher's config: ``base`` (the checkpoint's, :mod:`dyq.sim.dispatch_budget`) with this
+        configuration's overrides."""
+        return (base or dyq.DispatchConfig()).replace(**self.dispatch)
 
 
 CONFIGS: dict[str, RunConfig] = {c.name: c for c in (
@@ -150,9 +153,12 @@ class PolicyRunner:
     :meth:`load` takes the sample that ``dyq train`` saved beside the checkpoint.
     """
 
-    def __init__(self, policy: TokenPolicy, calibration: tuple[np.ndarray, np.ndarray] | None = None):
+    def __init__(self, policy: TokenPolicy, calibration: tuple[np.ndarray, np.ndarray] | None = None,
+                 dispatch: tuple["dyq.DispatchConfig", np.ndarray | None] | None = None):
         self.float_policy = policy
         self.calibration = calibration
+        # The dispatcher's base config and the actions that prime its scale histories each episode.
+        self.dispatch_base, self.dispatch_prime = dispatch or (dyq.DispatchConfig(), None)
         self.flag = dyq.PrecisionFlag(16)
         self._quantized: dict[str, TokenPolicy] = {}
         self.reports: dict[str, "dyq.QuantizationReport"] = {}
@@ -161,10 +167,12 @@ class PolicyRunner:
 
     @classmethod
     def load(cls, checkpoint) -> "PolicyRunner":
+        from . import dispatch_budget
         from .train import CALIBRATION_FILE, load_calibration_set
 
         calibration = load_calibration_set(checkpoint) if (Path(checkpoint) / CALIBRATION_FILE).is_file() else None
-        return cls(TokenPolicy.load(checkpoint), calibration)
+        dispatch = dispatch_budget.load(checkpoint) if (Path(checkpoint) / dispatch_budget.DISPATCH_FILE).is_file() else None
+        return cls(TokenPolicy.load(checkpoint), calibration, dispatch)
 
     def quantized_policy(self, weights: str) -> TokenPolicy:
         if weights in self._quantized:
@@ -248,9 +256,14 @@ def run_episode(runner: PolicyRunner, task: str, config: RunConfig | str, seed: 
     policy = runner.policy_for(config)
     runtime = None
     if config.kind == "dyq":
+        from . import dispatch_budget
+
         dispatcher_class = InvertedLadderDispatcher if config.inverted else dyq.KinematicDispatcher
-        runtime = dyq.DyQRuntime(dispatcher_class(config.dispatch_config()), runner.flag, prefill_bits="previous")
-        runtime.reset()
+        dispatcher = dispatcher_class(config.dispatch_config(runner.dispatch_base))
+        if runner.dispatch_prime is not None:
+            dispatch_budget.prime(dispatcher, runner.dispatch_prime)
+        runtime = dyq.DyQRuntime(dispatcher, runner.flag, prefill_bits="previous")
+        runtime.reset(keep_history=True)
     elif config.kind == "static":
         runner.flag.bits = config.bits
     else:

@@ -19,6 +19,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from . import dispatch_budget
 from .policy import PolicyConfig, TokenPolicy
 from .tokens import BinTokenizer
 
@@ -141,6 +142,8 @@ def train(task: str, data: str | Path, out: str | Path, *, steps: int = 3000, ba
                             "seconds_this_run": round(time.perf_counter() - begin, 1)})
     policy.save(out)
     save_calibration_set(out, train_obs, train_act, seed)
+    train_demos = actions[:-validation_demos] if validation_demos else actions
+    dispatch_budget.save(out, *dispatch_budget.budget_dispatch(train_demos), source=str(data))
     return policy
 
 
