@@ -26,7 +26,7 @@ void pack_codes(const uint8_t* codes, int64_t count, uint8_t* packed) {
 template <int kBits, typename Element>
 void quantize_rows(const Element* x, int64_t m, int64_t k, int group_size, uint8_t* packed, float* scales,
                    uint8_t* zeros) {
-  const int64_t groups = k / group_size;
+  const int64_t groups = group_count(k, group_size);
   const int64_t packed_row_bytes = packed_activation_bytes(k, kBits);
   parallel_for(0, m, kRowGrain, [&](int64_t row_begin, int64_t row_end) {
     std::vector<float> row_fp32(k);
