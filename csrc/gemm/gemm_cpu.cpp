@@ -2,6 +2,7 @@
 #include "gemm/gemm_cpu.h"
 
 #include <Eigen/Core>
+#include <cmath>
 #include <vector>
 
 #include "activation/act_quant_cpu_row.h"
@@ -106,31 +107,93 @@ void dispatch_gemm(ScalarType dtype, int act_bits, Fn&& fn) {
   dispatch_element_type(dtype, [&](auto element) { dispatch_act_bits(act_bits, [&](auto bits) { fn(element, bits); }, [] {}); });
 }
 
-}  // namespace
-
-void gemm_portable(const void* x, ScalarType dtype, const uint8_t* qweight, const float* scales, const void* bias,
-                   int64_t m, int64_t n, int64_t k, int group_size, int act_bits, void* out) {
-  if (m == 0 || n == 0) return;
-  dispatch_gemm(dtype, act_bits, [&](auto element, auto bits) {
-    using Element = decltype(element);
-    gemm_portable_typed<decltype(bits)::value>(static_cast<const Element*>(x), qweight, scales,
-                                               static_cast<const Element*>(bias), m, n, k, group_size,
-                                               static_cast<Element*>(out));
-  });
+// Rows whose output is not finite although their x, the bias and the weight scales are: an fp32
+// intermediate overflowed (x near FLT_MAX makes sum x q_w overflow at 16 bits, or groups of opposite sign
+// meet as inf - inf). Such a row is computed again from x scaled by 2^-shift, which is exact: every
+// quantity of the format scales with x (s_x does, the codes and P do not), so the sums are the same
+// numbers times 2^-shift, then scaled back. Returns false if a value is still out of range of the dtype.
+template <typename Element, typename Compute>
+bool recompute_overflowed_rows(const Element* x, const uint8_t* qweight, const float* scales, const Element* bias,
+                               int64_t m, int64_t n, int64_t k, int group_size, Element* out, Compute&& compute) {
+  auto finite = [](const auto* values, int64_t count) {
+    for (int64_t i = 0; i < count; ++i) {
+      if (!std::isfinite(to_float(values[i]))) return false;
+    }
+    return true;
+  };
+  if (finite(out, m * n)) return true;
+  if (!finite(scales, n * group_count(k, group_size)) || (bias != nullptr && !finite(bias, n))) return true;
+  bool in_range = true;
+  std::vector<Element> row(k), row_bias(bias != nullptr ? n : 0), row_out(n);
+  for (int64_t r = 0; r < m; ++r) {
+    if (finite(out + r * n, n) || !finite(x + r * k, k)) continue;  // a non-finite x gives NaN by the spec
+    float max_abs = 0.0f;
+    for (int64_t i = 0; i < k; ++i) max_abs = std::fmax(max_abs, std::fabs(to_float(x[r * k + i])));
+    int exponent = 0;
+    std::frexp(max_abs, &exponent);
+    // Scaled to at most 2^64, no sum of at most 2^24 terms of |x q_w| <= 2^67 can overflow.
+    const int shift = exponent > 64 ? exponent - 64 : 0;
+    if (shift == 0) {
+      in_range = false;  // x is moderate: the product itself is beyond the dtype
+      continue;
+    }
+    for (int64_t i = 0; i < k; ++i) row[i] = from_float<Element>(std::ldexp(to_float(x[r * k + i]), -shift));
+    for (int64_t j = 0; j < static_cast<int64_t>(row_bias.size()); ++j) {
+      row_bias[j] = from_float<Element>(std::ldexp(to_float(bias[j]), -shift));
+    }
+    compute(row.data(), row_bias.empty() ? nullptr : row_bias.data(), int64_t{1}, row_out.data());
+    for (int64_t j = 0; j < n; ++j) {
+      const Element value = from_float<Element>(std::ldexp(to_float(row_out[j]), shift));
+      in_range = in_range && std::isfinite(to_float(value));
+      out[r * n + j] = value;
+    }
+  }
+  return in_range;
 }
 
-void gemm(const void* x, ScalarType dtype, const uint8_t* qweight, const float* scales, const void* bias,
-          int64_t m, int64_t n, int64_t k, int group_size, int act_bits, void* out) {
-#if defined(DYQ_GEMM_AVX512)
-  if (m == 0 || n == 0) return;
+// Runs kernel(x, bias, rows, out) for the problem, then recomputes the rows that overflowed.
+template <typename Kernel>
+bool gemm_with_overflow_check(const void* x, ScalarType dtype, const uint8_t* qweight, const float* scales,
+                              const void* bias, int64_t m, int64_t n, int64_t k, int group_size, int act_bits,
+                              void* out, Kernel&& kernel) {
+  if (m == 0 || n == 0) return true;
+  bool in_range = true;
   dispatch_gemm(dtype, act_bits, [&](auto element, auto bits) {
     using Element = decltype(element);
-    avx512::gemm<decltype(bits)::value>(static_cast<const Element*>(x), qweight, scales,
-                                        static_cast<const Element*>(bias), m, n, k, group_size,
-                                        static_cast<Element*>(out));
+    auto compute = [&](const Element* rows_x, const Element* rows_bias, int64_t rows, Element* rows_out) {
+      kernel(element, bits, rows_x, rows_bias, rows, rows_out);
+    };
+    const auto* typed_x = static_cast<const Element*>(x);
+    const auto* typed_bias = static_cast<const Element*>(bias);
+    auto* typed_out = static_cast<Element*>(out);
+    compute(typed_x, typed_bias, m, typed_out);
+    in_range = recompute_overflowed_rows(typed_x, qweight, scales, typed_bias, m, n, k, group_size, typed_out, compute);
   });
+  return in_range;
+}
+
+}  // namespace
+
+bool gemm_portable(const void* x, ScalarType dtype, const uint8_t* qweight, const float* scales, const void* bias,
+                   int64_t m, int64_t n, int64_t k, int group_size, int act_bits, void* out) {
+  return gemm_with_overflow_check(
+      x, dtype, qweight, scales, bias, m, n, k, group_size, act_bits, out,
+      [&](auto, auto bits, const auto* rows_x, const auto* rows_bias, int64_t rows, auto* rows_out) {
+        gemm_portable_typed<decltype(bits)::value>(rows_x, qweight, scales, rows_bias, rows, n, k, group_size,
+                                                   rows_out);
+      });
+}
+
+bool gemm(const void* x, ScalarType dtype, const uint8_t* qweight, const float* scales, const void* bias,
+          int64_t m, int64_t n, int64_t k, int group_size, int act_bits, void* out) {
+#if defined(DYQ_GEMM_AVX512)
+  return gemm_with_overflow_check(
+      x, dtype, qweight, scales, bias, m, n, k, group_size, act_bits, out,
+      [&](auto, auto bits, const auto* rows_x, const auto* rows_bias, int64_t rows, auto* rows_out) {
+        avx512::gemm<decltype(bits)::value>(rows_x, qweight, scales, rows_bias, rows, n, k, group_size, rows_out);
+      });
 #else
-  gemm_portable(x, dtype, qweight, scales, bias, m, n, k, group_size, act_bits, out);
+  return gemm_portable(x, dtype, qweight, scales, bias, m, n, k, group_size, act_bits, out);
 #endif
 }
 
