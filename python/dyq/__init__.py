@@ -15,7 +15,8 @@ from .control.runtime import DyQRuntime, StepStats, force_precision
 from .core import ops, reference
 from .core.linear import DyQLinear
 from .core.precision import FALLBACK_BITS, GROUP_SIZES, VALID_BITS
-from .core.quantize import QuantizationReport, bind_flag, quantize_model, set_precision
+from .core.quantize import QuantizationReport, bind_flag, model_flag, quantize_model, set_precision
+from .core.serialization import load_quantized, save_quantized
 
 __version__ = "0.1.0"
 
@@ -34,8 +35,11 @@ __all__ = [
     "QuantizationReport",
     "VALID_BITS",
     "bind_flag",
+    "load_quantized",
+    "model_flag",
     "ops",
     "quantize_model",
     "reference",
+    "save_quantized",
     "set_precision",
 ]

@@ -50,6 +50,39 @@ def _gemm_with_flag_fake(x, qweight, scales, group_size, act_bits_flag, bias=Non
     return x.new_empty(tuple(x.shape[:-1]) + (qweight.shape[0],))
 
 
+# ---- autograd: gradients through the frozen INT4 weights ---------------------------------------------
+#
+# The weights are static, so only x (and the bias) get gradients. The activation quantization is treated
+# as the identity in the backward pass (straight-through): the gradient is that of x W^T + bias with the
+# dequantized weight W = s_w * q_w, i.e. grad_x = grad_y W, at every bit-width. This is what LoRA-style
+# adapters on a frozen 4-bit base need (QLoRA's backward through NF4 weights does the same).
+
+def _gemm_setup_context(ctx, inputs, output):
+    x, qweight, scales, group_size, _, bias = inputs
+    if scales.requires_grad:
+        raise RuntimeError("dyq: the INT4 weights are frozen: scales (and qweight) have no gradient; train "
+                           "adapters beside the layer (LoRA) or the bias instead")
+    ctx.group_size = group_size
+    ctx.x_shape, ctx.x_dtype = x.shape, x.dtype
+    ctx.has_bias = bias is not None
+    ctx.save_for_backward(qweight, scales)
+
+
+def _gemm_backward(ctx, grad_out):
+    qweight, scales = ctx.saved_tensors
+    grad_x = grad_bias = None
+    if ctx.needs_input_grad[0]:
+        weight = torch.ops.dyq.dequantize_weight(qweight, scales, ctx.group_size)  # [N, K] fp32
+        grad_x = (grad_out.reshape(-1, weight.shape[0]).float() @ weight).to(ctx.x_dtype).reshape(ctx.x_shape)
+    if ctx.has_bias and ctx.needs_input_grad[5]:
+        grad_bias = grad_out.reshape(-1, grad_out.shape[-1]).sum(dim=0)
+    return grad_x, None, None, None, None, grad_bias
+
+
+torch.library.register_autograd("dyq::gemm", _gemm_backward, setup_context=_gemm_setup_context)
+torch.library.register_autograd("dyq::gemm_with_flag", _gemm_backward, setup_context=_gemm_setup_context)
+
+
 def _groups(k, group_size: int):
     """ceil(K / G): groups per row, the last holding the remainder when G does not divide K."""
     return (k + group_size - 1) // group_size
