@@ -24,7 +24,7 @@ def _grouped(t: torch.Tensor, group_size: int) -> torch.Tensor:
 
 def _ungrouped(t: torch.Tensor, k: int) -> torch.Tensor:
     """Inverse of _grouped: [..., groups, G] back to [..., K], the padding dropped."""
-    return t.reshape(*t.shape[:-2], -1)[..., :k]
+    return t.reshape(*t.shape[:-2], t.shape[-2] * t.shape[-1])[..., :k]
 
 
 def quantize_weight(weight: torch.Tensor, group_size: int = 128):
