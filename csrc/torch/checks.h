@@ -3,8 +3,8 @@
 // a clear error that names the argument and what was expected (docs/numerics.md, section 4).
 //
 // Shapes are read as SymInts, so that the fake kernels can validate tensors with symbolic sizes under
-// torch.compile; a comparison guards on them as an `if` in Python would. Wrong dtypes raise TypeError,
-// wrong values and shapes ValueError, wrong devices and layouts RuntimeError.
+// torch.compile; a comparison guards on them as an `if` in Python would. Every check raises
+// RuntimeError (c10::Error), as the ops always have.
 #pragma once
 
 #include <ATen/core/Tensor.h>
@@ -32,7 +32,7 @@ inline ScalarType to_dyq_dtype(at::ScalarType t) {
     case at::kFloat: return ScalarType::kFloat32;
     case at::kBFloat16: return ScalarType::kBFloat16;
     case at::kHalf: return ScalarType::kFloat16;
-    default: TORCH_CHECK_TYPE(false, "dyq: unsupported dtype ", t, "; expected float32, bfloat16 or float16");
+    default: TORCH_CHECK(false, "dyq: unsupported dtype ", t, "; expected float32, bfloat16 or float16");
   }
 }
 
@@ -55,13 +55,13 @@ inline std::string registered_act_bits_text(bool quantized_only = false) {
 }
 
 inline void check_group_size(int64_t group_size) {
-  TORCH_CHECK_VALUE(is_valid_group_size(group_size), "dyq: group_size must be ", spelled_out(RegisteredGroupSizes()),
+  TORCH_CHECK(is_valid_group_size(group_size), "dyq: group_size must be ", spelled_out(RegisteredGroupSizes()),
                     ", got ", group_size);
 }
 
 // allow_fallback = false: only the quantized widths (the standalone activation quantizer).
 inline void check_act_bits(int64_t act_bits, bool allow_fallback = true) {
-  TORCH_CHECK_VALUE(is_valid_act_bits(act_bits) && (allow_fallback || act_bits != kFallbackBits),
+  TORCH_CHECK(is_valid_act_bits(act_bits) && (allow_fallback || act_bits != kFallbackBits),
                     "dyq: act_bits must be ", registered_act_bits_text(!allow_fallback), ", got ", act_bits);
 }
 
@@ -77,9 +77,9 @@ inline void check_same_device(const at::Tensor& t, const char* name, const at::D
 
 inline void check_activation(const at::Tensor& x, const char* name) {
   check_strided(x, name);
-  TORCH_CHECK_TYPE(is_activation_dtype(x.scalar_type()), "dyq: ", name, " must be float32, bfloat16 or float16, got ",
+  TORCH_CHECK(is_activation_dtype(x.scalar_type()), "dyq: ", name, " must be float32, bfloat16 or float16, got ",
                    x.scalar_type());
-  TORCH_CHECK_VALUE(x.dim() >= 1, "dyq: ", name, " must have at least one dimension (..., K), got a scalar");
+  TORCH_CHECK(x.dim() >= 1, "dyq: ", name, " must have at least one dimension (..., K), got a scalar");
 }
 
 // Groups of K columns: ceil(K / G), the last holding the remainder (common/format.h).
@@ -90,15 +90,15 @@ inline void check_packed_weight(const at::Tensor& qweight, const at::Tensor& sca
                                 const at::Device& device) {
   check_strided(qweight, "qweight");
   check_strided(scales, "scales");
-  TORCH_CHECK_TYPE(qweight.scalar_type() == at::kByte, "dyq: qweight must be uint8 (two INT4 codes per byte), got ",
+  TORCH_CHECK(qweight.scalar_type() == at::kByte, "dyq: qweight must be uint8 (two INT4 codes per byte), got ",
                    qweight.scalar_type());
-  TORCH_CHECK_VALUE(qweight.dim() == 2, "dyq: qweight must have shape [N, K/2], got ", qweight.sym_sizes());
+  TORCH_CHECK(qweight.dim() == 2, "dyq: qweight must have shape [N, K/2], got ", qweight.sym_sizes());
   TORCH_CHECK(qweight.is_contiguous(), "dyq: qweight must be contiguous (packed data is dense)");
-  TORCH_CHECK_TYPE(scales.scalar_type() == at::kFloat, "dyq: scales must be float32, got ", scales.scalar_type());
+  TORCH_CHECK(scales.scalar_type() == at::kFloat, "dyq: scales must be float32, got ", scales.scalar_type());
   TORCH_CHECK(scales.is_contiguous(), "dyq: scales must be contiguous");
   const c10::SymInt k = qweight.sym_size(1) * 2;
   const c10::SymInt groups = group_count(k, group_size);
-  TORCH_CHECK_VALUE(scales.dim() == 2 && scales.sym_size(0) == qweight.sym_size(0) && scales.sym_size(1) == groups,
+  TORCH_CHECK(scales.dim() == 2 && scales.sym_size(0) == qweight.sym_size(0) && scales.sym_size(1) == groups,
                     "dyq: scales must have shape [N, ceil(K/group_size)] = [", qweight.sym_size(0), ", ", groups,
                     "] for qweight of shape ", qweight.sym_sizes(), " and group_size = ", group_size, ", got ",
                     scales.sym_sizes());
@@ -110,9 +110,9 @@ inline void check_packed_weight(const at::Tensor& qweight, const at::Tensor& sca
 // CPU tensor; CUDA kernels read pinned host memory or device memory).
 inline void check_flag_tensor(const at::Tensor& flag) {
   check_strided(flag, "act_bits_flag");
-  TORCH_CHECK_TYPE(flag.scalar_type() == at::kInt, "dyq: act_bits_flag must be an int32 tensor, got ",
+  TORCH_CHECK(flag.scalar_type() == at::kInt, "dyq: act_bits_flag must be an int32 tensor, got ",
                    flag.scalar_type());
-  TORCH_CHECK_VALUE(flag.sym_numel() == 1, "dyq: act_bits_flag must hold exactly one element, got ",
+  TORCH_CHECK(flag.sym_numel() == 1, "dyq: act_bits_flag must hold exactly one element, got ",
                     flag.sym_numel());
 }
 
@@ -125,13 +125,13 @@ inline void check_gemm_args(const at::Tensor& x, const at::Tensor& qweight, cons
   check_activation(x, "x");
   check_packed_weight(qweight, scales, group_size, x.device());
   const c10::SymInt k = qweight.sym_size(1) * 2;
-  TORCH_CHECK_VALUE(x.sym_size(-1) == k, "dyq: x has ", x.sym_size(-1),
+  TORCH_CHECK(x.sym_size(-1) == k, "dyq: x has ", x.sym_size(-1),
                     " features (last dimension) but the weight expects K = ", k);
   if (bias.has_value()) {
     check_strided(*bias, "bias");
-    TORCH_CHECK_TYPE(bias->scalar_type() == x.scalar_type(), "dyq: bias must have the dtype of x (", x.scalar_type(),
+    TORCH_CHECK(bias->scalar_type() == x.scalar_type(), "dyq: bias must have the dtype of x (", x.scalar_type(),
                      "), got ", bias->scalar_type());
-    TORCH_CHECK_VALUE(bias->dim() == 1 && bias->sym_size(0) == qweight.sym_size(0), "dyq: bias must have shape [N] = [",
+    TORCH_CHECK(bias->dim() == 1 && bias->sym_size(0) == qweight.sym_size(0), "dyq: bias must have shape [N] = [",
                       qweight.sym_size(0), "], got ", bias->sym_sizes());
     check_same_device(*bias, "bias", x.device());
   }
@@ -153,10 +153,10 @@ inline void check_gemm_with_flag(const at::Tensor& x, const at::Tensor& qweight,
 inline void check_quantize_weight(const at::Tensor& weight, int64_t group_size) {
   check_group_size(group_size);
   check_strided(weight, "weight");
-  TORCH_CHECK_TYPE(weight.is_floating_point(), "dyq: weight must be a floating-point tensor, got ",
+  TORCH_CHECK(weight.is_floating_point(), "dyq: weight must be a floating-point tensor, got ",
                    weight.scalar_type());
-  TORCH_CHECK_VALUE(weight.dim() == 2, "dyq: weight must have shape [N, K], got ", weight.sym_sizes());
-  TORCH_CHECK_VALUE(weight.sym_size(1) % 2 == 0, "dyq: weight has K = ", weight.sym_size(1),
+  TORCH_CHECK(weight.dim() == 2, "dyq: weight must have shape [N, K], got ", weight.sym_sizes());
+  TORCH_CHECK(weight.sym_size(1) % 2 == 0, "dyq: weight has K = ", weight.sym_size(1),
                     " columns; K must be even (two INT4 codes per byte)");
 }
 
@@ -171,7 +171,7 @@ inline void check_quantize_activations(const at::Tensor& x, int64_t group_size, 
   check_group_size(group_size);
   check_act_bits(act_bits, /*allow_fallback=*/false);
   check_activation(x, "x");
-  TORCH_CHECK_VALUE(x.sym_size(-1) * act_bits % 8 == 0, "dyq: x has K = ", x.sym_size(-1), " columns; at act_bits = ",
+  TORCH_CHECK(x.sym_size(-1) * act_bits % 8 == 0, "dyq: x has K = ", x.sym_size(-1), " columns; at act_bits = ",
                     act_bits, " K must be a multiple of ", 8 / act_bits, " (whole bytes of packed codes)");
 }
 

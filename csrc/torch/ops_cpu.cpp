@@ -44,7 +44,7 @@ std::tuple<at::Tensor, at::Tensor> quantize_weight_cpu(const at::Tensor& weight,
     return cpu::quantize_weight(w.const_data_ptr<float>(), n, k, static_cast<int>(group_size),
                                 qweight.mutable_data_ptr<uint8_t>(), scales.mutable_data_ptr<float>());
   });
-  TORCH_CHECK_VALUE(finite, "dyq: weight contains NaN or Inf; static INT4 weights must be finite");
+  TORCH_CHECK(finite, "dyq: weight contains NaN or Inf; static INT4 weights must be finite");
   return {qweight, scales};
 }
 
@@ -103,7 +103,7 @@ struct CpuGemm {
                        out.numel() / n, n, k, static_cast<int>(group_size), static_cast<int>(act_bits),
                        out.mutable_data_ptr());
     });
-    TORCH_CHECK_VALUE(in_range, "dyq: x W^T is out of the range of ", x.scalar_type(),
+    TORCH_CHECK(in_range, "dyq: x W^T is out of the range of ", x.scalar_type(),
                       " (finite inputs whose product overflows the output dtype)");
   }
 };

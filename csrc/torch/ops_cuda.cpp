@@ -31,7 +31,7 @@ at::Tensor aligned_contiguous(const at::Tensor& t) {
 // The CUDA kernels move 16-byte vectors of packed weights (32 columns) and runs of 8 activations, so K
 // must be a multiple of 32 here (the CPU takes any even K); the group size need not divide it.
 void check_cuda_k(int64_t k, const char* name) {
-  TORCH_CHECK_VALUE(k % 32 == 0, "dyq: ", name, " has K = ", k, " columns; CUDA kernels need K a multiple of 32");
+  TORCH_CHECK(k % 32 == 0, "dyq: ", name, " has K = ", k, " columns; CUDA kernels need K a multiple of 32");
 }
 
 void check_on_cuda(const at::Tensor& x, const char* name) {
