@@ -20,6 +20,15 @@ from .core.serialization import load_quantized, save_quantized
 
 __version__ = "0.1.0"
 
+
+def __getattr__(name):
+    # The Hugging Face quantizer registers itself with transformers on first use (transformers is optional).
+    if name in ("DyQConfig", "DyQHfQuantizer"):
+        from .core import hf_quantizer
+
+        return getattr(hf_quantizer, name)
+    raise AttributeError(f"module 'dyq' has no attribute {name!r}")
+
 __all__ = [
     "DispatchConfig",
     "DyQRuntime",

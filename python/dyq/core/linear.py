@@ -97,14 +97,21 @@ class DyQLinear(nn.Module):
 
     @classmethod
     def convert_in_place(cls, linear: nn.Linear, group_size: int = 128, act_bits: int = 16,
-                         flag: PrecisionFlag | None = None) -> "DyQLinear":
+                         flag: PrecisionFlag | None = None, *, quantize: bool = True) -> "DyQLinear":
         """Turn ``linear`` itself into a DyQLinear (its class changes; its weight becomes INT4), so that
-        every reference to it, in any parent or in the caller's hands, sees the quantized layer. Returns it."""
+        every reference to it, in any parent or in the caller's hands, sees the quantized layer. Returns it.
+        ``quantize=False`` leaves empty INT4 buffers of the right shape (on the weight's device, meta
+        included) for a state dict to be loaded into."""
         if not isinstance(linear, nn.Linear):
             raise TypeError(f"linear must be a torch.nn.Linear, got {type(linear).__name__}")
         check_group_size(group_size)
         act_bits = check_bits(act_bits, "act_bits")
-        qweight, scales = _quantized_weight(linear, group_size)
+        if quantize:
+            qweight, scales = _quantized_weight(linear, group_size)
+        else:
+            k, device = _packed_columns(linear.in_features), linear.weight.device
+            qweight = torch.zeros(linear.out_features, k // 2, dtype=torch.uint8, device=device)
+            scales = torch.ones(linear.out_features, -(-k // group_size), dtype=torch.float32, device=device)
         bias = linear.bias
         if bias is not None:
             bias = nn.Parameter(bias.detach().to(_bias_dtype(linear)), requires_grad=False)

@@ -127,7 +127,8 @@ def prepare_quantized_layers(model: nn.Module, state: dict[str, Any], flag: Prec
             raise ValueError(f"layer {name!r} is Linear({module.in_features}, {module.out_features}, "
                              f"bias={module.bias is not None}) here but was saved as Linear({layer['in_features']}, "
                              f"{layer['out_features']}, bias={layer['bias']})")
-        DyQLinear.convert_in_place(module, group_size=layer["group_size"], act_bits=layer["act_bits"], flag=flag)
+        DyQLinear.convert_in_place(module, group_size=layer["group_size"], act_bits=layer["act_bits"], flag=flag,
+                                   quantize=False)
 
 
 def load_quantized(model_or_config, directory: str | os.PathLike) -> nn.Module:
