@@ -5,6 +5,8 @@ the C++ and CUDA kernels against it. It never calls a dyq kernel.
 """
 from __future__ import annotations
 
+import math
+
 import torch
 
 GROUP_SIZES = (32, 64, 128)
@@ -90,7 +92,7 @@ def pack_activations(codes: torch.Tensor, act_bits: int) -> torch.Tensor:
     if act_bits == 8:
         return codes.to(torch.uint8).clone()
     per_byte = 8 // act_bits
-    c = codes.to(torch.int32).reshape(*codes.shape[:-1], -1, per_byte)
+    c = codes.to(torch.int32).reshape(*codes.shape[:-1], codes.shape[-1] // per_byte, per_byte)
     shifts = torch.arange(per_byte, dtype=torch.int32) * act_bits
     return (c << shifts).sum(dim=-1).to(torch.uint8)
 
@@ -113,7 +115,7 @@ def gemm(x: torch.Tensor, qweight: torch.Tensor, scales: torch.Tensor, group_siz
     """
     k = x.shape[-1]
     n = qweight.shape[0]
-    x2 = x.reshape(-1, k)
+    x2 = x.reshape(math.prod(x.shape[:-1]), k)
     w_codes = _grouped(unpack_int4(qweight).to(accumulate_dtype), group_size)        # [N, Gs, G]
     s_w = scales.to(accumulate_dtype)                                                  # [N, Gs]
     if act_bits == 16:
@@ -134,7 +136,7 @@ def gemm_error_bound(x: torch.Tensor, qweight: torch.Tensor, scales: torch.Tenso
                      act_bits: int, bias: torch.Tensor | None = None) -> torch.Tensor:
     """sum of |terms| of the fp32 sums in ``gemm``: the scale of the rounding error a kernel may make."""
     k = x.shape[-1]
-    x2 = x.reshape(-1, k)
+    x2 = x.reshape(math.prod(x.shape[:-1]), k)
     w_codes = _grouped(unpack_int4(qweight).double().abs(), group_size)
     s_w = scales.double().abs()
     if act_bits == 16:
