@@ -100,7 +100,10 @@ def test_gemm_is_the_reference_or_a_clear_error(case):
     bits = torch.tensor([act_bits], dtype=torch.int32) if case["flag"] else act_bits
     out, error = run(lambda: dyq.ops.gemm(x, qweight_arg, scales_arg, group_size, bits, bias))
 
-    valid = (group_size in dyq.GROUP_SIZES and act_bits in dyq.VALID_BITS and x.dtype in helpers_dtypes()
+    # A flag's value is data, read when a kernel runs: a meta (or traced) call cannot check it.
+    bits_known = not (case["flag"] and case["device"] == "meta")
+    valid = (group_size in dyq.GROUP_SIZES and (act_bits in dyq.VALID_BITS or not bits_known)
+             and x.dtype in helpers_dtypes()
              and case["qweight"] in ("ok", "non_contiguous") and k == weight_k
              and case["bias"] in ("none", "same") and case["device"] != "mixed")
     if not qweight_arg.is_contiguous():
