@@ -205,6 +205,9 @@ def update_results(out: Path, task: str, seeds: list[int], checkpoint: str, dige
     entry = data["tasks"].setdefault(task, {"configs": {}})
     if entry.get("checkpoint_digest") not in (None, digest):
         entry["configs"] = {}  # a retrained policy: the old rows describe another policy
+    checkpoint = Path(checkpoint).resolve()
+    if checkpoint.is_relative_to(Path.cwd()):
+        checkpoint = checkpoint.relative_to(Path.cwd())  # a path that means the same in any checkout
     entry.update(horizon=envs.spec(task).horizon, seeds=seeds, checkpoint=str(checkpoint), checkpoint_digest=digest)
     entry["configs"].update(rows)
     entry["comparisons"] = [c for c in (compare(entry["configs"], a, b) for a, b in COMPARISONS) if c]
