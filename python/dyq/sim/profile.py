@@ -13,7 +13,10 @@ checks that the observation vector comes back bit for bit.
 (prefill and decode of the INT4 model, ``runner.flag.bits = b``), then the float policy up to the
 reference's length T (no early stop, so D_T compares positions at the same time). e_t is the distance
 between the two executed actions at step t, D_T = ||eef_T - eef*_T|| + ||object_T - object*_T|| (final
-end-effector and object positions against the reference's), success is success at any step. Width 16
+end-effector and object positions against the reference's), success is success at any step up to the
+task's horizon, as the closed-loop table counts it: the reference succeeded first at T, so an episode
+delayed by one step would otherwise count as a failure; one not done by T runs on until it succeeds
+or the horizon ends (those steps decide success only). Width 16
 is the float policy itself, a null perturbation (e_t = D_T = 0) that checks the machinery. A step
 whose low-width action equals the reference's (e_t = 0) changes nothing downstream, so its result
 (D_T = 0, the reference's success) is recorded without simulating it.
@@ -169,6 +172,12 @@ def _final_positions(task: str, obs: dict) -> tuple[np.ndarray, np.ndarray]:
     return np.asarray(obs["robot0_eef_pos"], dtype=np.float64), envs.object_pos(task, obs)
 
 
+def _terminal_deviation(obs: dict, reference: "Reference") -> float:
+    """D_T: distance of the end-effector plus distance of the object from the reference's final ones."""
+    eef, obj = _final_positions(reference.task, obs)
+    return float(np.linalg.norm(eef - reference.final_eef) + np.linalg.norm(obj - reference.final_object))
+
+
 def reference_episode(runner: PolicyRunner, task: str, seed: int, env=None) -> Reference:
     """The full-precision episode of ``seed``, up to success or the task's horizon."""
     env = envs.make_env(task) if env is None else env
@@ -209,26 +218,34 @@ def restore(env, reference: Reference, t: int) -> dict:
 class Perturbation(NamedTuple):
     action_error: float  # e_t
     terminal_deviation: float  # D_T: final end-effector distance + final object distance
-    success: bool  # success at any step of the perturbed episode
+    success: bool  # success at any step up to the horizon
     simulated: bool  # False: e_t = 0, the episode is the reference itself
 
 
 def perturb(runner: PolicyRunner, reference: Reference, t: int, width: int, env=None) -> Perturbation:
-    """The reference with step ``t`` at activation width ``width`` and the float policy elsewhere,
-    run to the reference's length (see the module docstring). Always simulates."""
+    """The reference with step ``t`` at activation width ``width`` and the float policy elsewhere:
+    D_T at the reference's length T, success up to the horizon (see the module docstring). Always
+    simulates."""
     task = reference.task
     env = envs.make_env(task) if env is None else env
     obs = restore(env, reference, t)
     _, action = act_at_width(runner, reference.observations[t], width)
     error = float(np.linalg.norm(action - reference.actions[t]))
-    success = False
-    for step in range(t, reference.steps):
+    # D_T at the reference's length T; success as the closed-loop table counts it, at any step up to
+    # the horizon, so an episode not done by T runs on (those steps decide success only).
+    success, deviation = False, None
+    for step in range(t, envs.spec(task).horizon):
+        if step >= reference.steps:
+            if deviation is None:
+                deviation = _terminal_deviation(obs, reference)
+            if success:
+                break
         if step > t:
             _, action = act_at_width(runner, envs.observation_vector(task, obs), FULL_PRECISION)
         obs, _, _, _ = envs.step_env(env, action)
         success = success or envs.check_success(env)
-    eef, obj = _final_positions(task, obs)
-    deviation = float(np.linalg.norm(eef - reference.final_eef) + np.linalg.norm(obj - reference.final_object))
+    if deviation is None:  # T is the whole horizon
+        deviation = _terminal_deviation(obs, reference)
     return Perturbation(error, deviation, bool(success), True)
 
 
