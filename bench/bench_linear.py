@@ -4,6 +4,7 @@ Prints a table of median milliseconds and writes bench/results/linear_cpu.json.
 
     python bench/bench_linear.py              # the full grid
     python bench/bench_linear.py --quick      # one shape, for a smoke run
+    DYQ_CPU_ISA=avx2 python bench/bench_linear.py --out linear_cpu_avx2.json   # another CPU path
 """
 from __future__ import annotations
 
@@ -51,7 +52,8 @@ def main() -> None:
                         + [f"{min(speedups[f'w4a{b}'] for b in BITS):.2f}x"])
 
     headers = ["M", "N", "K", "fp32", "bf16"] + [f"W4A{b}" for b in BITS] + ["min speedup vs fp32"]
-    print_table(headers, rows, title="DyQLinear on the CPU, median ms (input fp32, group 128)")
+    isa = dyq.cpu_info()["isa"]
+    print_table(headers, rows, title=f"DyQLinear on the CPU ({isa} path), median ms (input fp32, group 128)")
     path = write_json(args.out, {"benchmark": "linear_cpu", "environment": environment(), "results": results})
     print(f"\nwrote {path}")
 

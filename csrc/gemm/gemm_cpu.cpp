@@ -1,135 +1,14 @@
-// The W4A2 / W4A4 / W4A8 / W4A16 GEMM on the CPU (every width of common/precision.h) (docs/numerics.md, section 3).
+// The W4A2 / W4A4 / W4A8 / W4A16 GEMM on the CPU (docs/numerics.md, section 3): the kernel of the path
+// that cpu/cpu_isa.h chose for this CPU.
 #include "gemm/gemm_cpu.h"
 
-#include <Eigen/Core>
-#include <vector>
-
-#include "activation/act_quant_cpu_row.h"
-#include "common/cpu_dtype.h"
-#include "common/precision.h"
-#include "gemm/gemm_cpu_avx512.h"
-#include "gemm/gemm_cpu_paths.h"
-#include "parallel/parallel.h"
+#include "cpu/cpu_isa.h"
 
 namespace dyq::cpu {
-namespace {
-
-using RowMajorMatrix = Eigen::Matrix<float, Eigen::Dynamic, Eigen::Dynamic, Eigen::RowMajor>;
-using ColMajorMatrix = Eigen::Matrix<float, Eigen::Dynamic, Eigen::Dynamic>;
-
-// Output rows (weight rows) per task of the portable path.
-constexpr int64_t kPortableRowsPerTask = 64;
-
-// The left operand of every group product: the centered codes q_x - z_x (integers) with their scales
-// s_x, or at the fallback width the fp32 copy of x.
-struct PortableActivations {
-  RowMajorMatrix values;  // [m, k]
-  RowMajorMatrix scales;  // [m, k / group_size]; empty at the fallback width
-};
-
-template <int kBits, typename Element>
-PortableActivations prepare_portable_activations(const Element* x, int64_t m, int64_t k, int group_size) {
-  PortableActivations prepared;
-  prepared.values.resize(m, k);
-  if constexpr (!ActivationTraits<kBits>::kQuantized) {
-    parallel_for(0, m, 16, [&](int64_t row_begin, int64_t row_end) {
-      for (int64_t row = row_begin; row < row_end; ++row) load_row_fp32(x + row * k, k, &prepared.values(row, 0));
-    });
-  } else {
-    prepared.scales.resize(m, k / group_size);
-    parallel_for(0, m, 4, [&](int64_t row_begin, int64_t row_end) {
-      std::vector<float> row_fp32(k);
-      std::vector<uint8_t> codes(k);
-      std::vector<ActivationGroupParams> params(k / group_size);
-      for (int64_t row = row_begin; row < row_end; ++row) {
-        quantize_activation_row(x + row * k, k, group_size, kBits, row_fp32.data(), codes.data(), params.data());
-        for (int64_t col = 0; col < k; ++col) {
-          prepared.values(row, col) = static_cast<float>(int{codes[col]} - params[col / group_size].zero);
-        }
-        for (int64_t g = 0; g < k / group_size; ++g) prepared.scales(row, g) = params[g].scale;
-      }
-    });
-  }
-  return prepared;
-}
-
-template <int kBits, typename Element>
-void gemm_portable_typed(const Element* x, const uint8_t* qweight, const float* scales, const Element* bias,
-                         int64_t m, int64_t n, int64_t k, int group_size, Element* out) {
-  const PortableActivations activations = prepare_portable_activations<kBits>(x, m, k, group_size);
-  const int64_t groups = k / group_size;
-  const int64_t tasks = (n + kPortableRowsPerTask - 1) / kPortableRowsPerTask;
-  parallel_for(0, tasks, 1, [&](int64_t task_begin, int64_t task_end) {
-    RowMajorMatrix weight_codes;  // [rows, group_size], integer-valued
-    ColMajorMatrix partial;       // [m, rows]: the group's partial sums
-    ColMajorMatrix accumulator;   // [m, rows]
-    Eigen::VectorXf weight_scales;
-    for (int64_t task = task_begin; task < task_end; ++task) {
-      const int64_t row_begin = task * kPortableRowsPerTask;
-      const int64_t rows = std::min(kPortableRowsPerTask, n - row_begin);
-      weight_codes.resize(rows, group_size);
-      weight_scales.resize(rows);
-      accumulator.setZero(m, rows);
-      for (int64_t g = 0; g < groups; ++g) {
-        for (int64_t r = 0; r < rows; ++r) {
-          const uint8_t* packed = qweight + ((row_begin + r) * k + g * group_size) / 2;
-          for (int i = 0; i < group_size / 2; ++i) {
-            weight_codes(r, 2 * i) = static_cast<float>(sign_extend_nibble(packed[i] & 0xFu));
-            weight_codes(r, 2 * i + 1) = static_cast<float>(sign_extend_nibble(packed[i] >> 4));
-          }
-          weight_scales(r) = scales[(row_begin + r) * groups + g];
-        }
-        partial.noalias() = activations.values.middleCols(g * group_size, group_size) * weight_codes.transpose();
-        if constexpr (!ActivationTraits<kBits>::kQuantized) {
-          accumulator.noalias() += partial * weight_scales.asDiagonal();
-        } else {
-          accumulator.array() +=
-              partial.array() * (activations.scales.col(g) * weight_scales.transpose()).array();
-        }
-      }
-      for (int64_t row = 0; row < m; ++row) {
-        for (int64_t r = 0; r < rows; ++r) {
-          const int64_t col = row_begin + r;
-          const float bias_value = bias != nullptr ? to_float(bias[col]) : 0.0f;
-          out[row * n + col] = from_float<Element>(accumulator(row, r) + bias_value);
-        }
-      }
-    }
-  });
-}
-
-// Calls fn(element, bits) with a value of the C++ element type of `dtype` and the compile-time width.
-template <typename Fn>
-void dispatch_gemm(ScalarType dtype, int act_bits, Fn&& fn) {
-  dispatch_element_type(dtype, [&](auto element) { dispatch_act_bits(act_bits, [&](auto bits) { fn(element, bits); }, [] {}); });
-}
-
-}  // namespace
-
-void gemm_portable(const void* x, ScalarType dtype, const uint8_t* qweight, const float* scales, const void* bias,
-                   int64_t m, int64_t n, int64_t k, int group_size, int act_bits, void* out) {
-  if (m == 0 || n == 0) return;
-  dispatch_gemm(dtype, act_bits, [&](auto element, auto bits) {
-    using Element = decltype(element);
-    gemm_portable_typed<decltype(bits)::value>(static_cast<const Element*>(x), qweight, scales,
-                                               static_cast<const Element*>(bias), m, n, k, group_size,
-                                               static_cast<Element*>(out));
-  });
-}
 
 void gemm(const void* x, ScalarType dtype, const uint8_t* qweight, const float* scales, const void* bias,
           int64_t m, int64_t n, int64_t k, int group_size, int act_bits, void* out) {
-#if defined(DYQ_GEMM_AVX512)
-  if (m == 0 || n == 0) return;
-  dispatch_gemm(dtype, act_bits, [&](auto element, auto bits) {
-    using Element = decltype(element);
-    avx512::gemm<decltype(bits)::value>(static_cast<const Element*>(x), qweight, scales,
-                                        static_cast<const Element*>(bias), m, n, k, group_size,
-                                        static_cast<Element*>(out));
-  });
-#else
-  gemm_portable(x, dtype, qweight, scales, bias, m, n, k, group_size, act_bits, out);
-#endif
+  active_cpu_path().kernels->gemm(x, dtype, qweight, scales, bias, m, n, k, group_size, act_bits, out);
 }
 
 }  // namespace dyq::cpu
