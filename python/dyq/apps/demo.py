@@ -25,6 +25,8 @@ from ..control.flag import PrecisionFlag
 from ..control.runtime import DyQRuntime
 from ..core.precision import VALID_BITS
 from ..core.quantize import quantize_model
+from ..sim.policy import cache_keyword
+from .usage import int_at_least, output_file, positive_int, require
 
 ACTION_TOKENS = 7
 ACTION_BINS = 256
@@ -41,20 +43,29 @@ def build_policy(vocab_size: int = 32000, hidden_size: int = 256, layers: int = 
     return LlamaForCausalLM(config).eval()
 
 
-def decode_actions(model, prompt: torch.Tensor, prefill_output=None) -> torch.Tensor:
+def prefill(model, prompt: torch.Tensor):
+    """The prompt through the model: (logits of its last position, the KV cache that the decode extends)."""
+    from transformers import DynamicCache
+
+    cache = DynamicCache()
+    with torch.inference_mode():
+        out = model(prompt, use_cache=True, **{cache_keyword(): cache})
+    return out.logits[:, -1], cache
+
+
+def decode_actions(model, prompt: torch.Tensor, prefilled=None) -> torch.Tensor:
     """Greedy decode of 7 action tokens, restricted to the action bins (OpenVLA's last 256 ids).
 
-    ``prefill_output`` is the model's output on ``prompt`` when the caller already ran the prefill."""
+    ``prefilled`` is :func:`prefill` of ``prompt`` when the caller already ran it."""
     vocab = model.config.vocab_size
+    keyword = cache_keyword()
+    logits, cache = prefill(model, prompt) if prefilled is None else prefilled
     tokens = []
     with torch.inference_mode():
-        out = model(prompt, use_cache=True) if prefill_output is None else prefill_output
-        logits, cache = out.logits[:, -1], out.past_key_values
         for _ in range(ACTION_TOKENS):
             token = logits[:, vocab - ACTION_BINS:].argmax(dim=-1, keepdim=True) + vocab - ACTION_BINS
             tokens.append(token)
-            out = model(token, past_key_values=cache, use_cache=True)
-            logits, cache = out.logits[:, -1], out.past_key_values
+            logits = model(token, use_cache=True, **{keyword: cache}).logits[:, -1]  # the cache grows in place
     return torch.cat(tokens, dim=1)
 
 
@@ -103,11 +114,8 @@ def run(steps: int = 80, prompt_tokens: int = 48, seed: int = 0, json_path: str 
             prompt = torch.randint(0, policy.config.vocab_size - ACTION_BINS, (1, prompt_tokens), generator=gen)
             start = time.perf_counter()
 
-            def prefill():
-                with torch.inference_mode():
-                    return policy(prompt, use_cache=True)
-
-            runtime.step(previous, prefill, lambda out: decode_actions(policy, prompt, prefill_output=out))
+            runtime.step(previous, lambda: prefill(policy, prompt),
+                         lambda prefilled: decode_actions(policy, prompt, prefilled=prefilled))
             step_ms[runtime.stats[-1].bits].append((time.perf_counter() - start) * 1e3)
             previous = trajectory[t]
         summary = runtime.summary()
@@ -139,12 +147,14 @@ def run(steps: int = 80, prompt_tokens: int = 48, seed: int = 0, json_path: str 
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--steps", type=int, default=80, help="control steps in the loop (default 80)")
-    parser.add_argument("--prompt-tokens", type=int, default=48, help="prompt length of each step (default 48)")
+    # The synthetic trajectory needs 10 steps (control.dispatch.synthetic_trajectory).
+    parser.add_argument("--steps", type=int_at_least(10), default=80, help="control steps in the loop (default 80)")
+    parser.add_argument("--prompt-tokens", type=positive_int, default=48, help="prompt length of each step (default 48)")
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--json", help="also write the results as JSON")
+    parser.add_argument("--json", type=output_file(".json"), help="also write the results as JSON")
 
 
 def main(args: argparse.Namespace) -> int:
+    require("transformers", "dyq demo (its Llama policy)")
     run(steps=args.steps, prompt_tokens=args.prompt_tokens, seed=args.seed, json_path=args.json)
     return 0
