@@ -23,10 +23,13 @@ BITS = [2, 4, 8, 16]
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--quick", action="store_true", help="one small shape only")
+    parser.add_argument("--shape", action="append", metavar="NxK", help="only these (N, K) shapes (repeatable)")
     parser.add_argument("--repeats", type=int, default=15)
     parser.add_argument("--out", default="linear_cpu.json")
     args = parser.parse_args()
     shapes, batches = ([(4096, 4096)], [1, 16]) if args.quick else (SHAPES, BATCHES)
+    if args.shape:
+        shapes = [tuple(int(v) for v in shape.lower().split("x")) for shape in args.shape]
 
     torch.manual_seed(0)
     rows, results = [], []
