@@ -1,4 +1,6 @@
 """Every misuse is a clear error that names the argument and what was expected."""
+import contextlib
+
 import pytest
 import torch
 from helpers import random_activations, random_weight
@@ -52,10 +54,19 @@ def test_group_size_is_checked(layer, rng):
         dyq.ops.gemm(x, qweight, scales, 48, 4)
     with raises("group_size must be 32, 64 or 128"):
         dyq.ops.quantize_weight(random_weight(4, 96, rng), 16)
-    with raises("not a multiple of group_size"):
-        dyq.ops.quantize_weight(random_weight(4, 96, rng), 64)
-    with raises("not a multiple of group_size"):
-        dyq.ops.quantize_activations(random_activations((2, 96), rng), 64, 4)
+    with raises("group_size must be 32, 64 or 128"):
+        dyq.ops.gemm(x, qweight, scales, 0, 4)
+
+
+def test_k_must_fill_whole_bytes(rng):
+    """K need not be a multiple of the group size, only fill whole bytes of packed codes."""
+    with raises("K must be even"):
+        dyq.ops.quantize_weight(random_weight(4, 97, rng), 64)
+    with raises("K must be a multiple of 4"):
+        dyq.ops.quantize_activations(random_activations((2, 98), rng), 64, 2)
+    with raises("K must be a multiple of 2"):
+        dyq.ops.quantize_activations(random_activations((2, 97), rng), 64, 4)
+    dyq.ops.quantize_activations(random_activations((2, 97), rng), 64, 8)  # one code per byte: any K
 
 
 @pytest.mark.parametrize("bits", (0, 1, 3, 6, 12, 32, -4))
@@ -102,3 +113,62 @@ def test_device_mismatch_is_rejected(layer):
     qweight, scales, x = layer
     with raises("qweight is on cpu"):
         dyq.ops.gemm(x.cuda(), qweight, scales.cuda(), 64, 4)
+
+
+def test_meta_tensors_mixed_with_cpu_tensors_are_rejected(layer):
+    qweight, scales, x = layer
+    with raises("qweight is on meta but x is on cpu"):
+        dyq.ops.gemm(x, qweight.to("meta"), scales.to("meta"), 64, 4)
+    with raises("scales is on cpu but x is on meta"):
+        dyq.ops.gemm(x.to("meta"), qweight.to("meta"), scales, 64, 4)
+    with raises("bias is on meta but x is on cpu"):
+        dyq.ops.gemm(x, qweight, scales, 64, 4, torch.zeros(16, device="meta"))
+    with raises("scales is on meta but x is on cpu"):
+        dyq.ops.dequantize_weight(qweight, scales.to("meta"), 64)
+
+
+@pytest.mark.parametrize("device", ("meta", "fake"))
+def test_fake_kernels_reject_what_the_real_kernels_reject(layer, device):
+    """One validation: the meta and fake (torch.compile) kernels run the C++ checks of the real ones."""
+    from torch._subclasses.fake_tensor import FakeTensorMode
+
+    qweight, scales, x = layer
+    mode = FakeTensorMode() if device == "fake" else contextlib.nullcontext()
+    on = "cpu" if device == "fake" else "meta"
+    with mode:
+        x, qweight, scales = (torch.empty(t.shape, dtype=t.dtype, device=on) for t in (x, qweight, scales))
+        with raises("act_bits must be 2, 4, 8 or 16, got 3"):
+            dyq.ops.gemm(x, qweight, scales, 64, 3)
+        with raises("qweight must have shape"):
+            dyq.ops.gemm(x, qweight.reshape(16, 2, 32), scales, 64, 4)
+        with raises("group_size must be 32, 64 or 128, got 0"):
+            dyq.ops.gemm(x, qweight, scales, 0, 4)
+        with raises("x must be float32, bfloat16 or float16"):
+            dyq.ops.gemm(x.double(), qweight, scales, 64, 4)
+        with raises("act_bits_flag must be an int32"):
+            dyq.ops.gemm(x, qweight, scales, 64, torch.empty(1, dtype=torch.int64, device=on))
+        with raises("K must be even"):
+            dyq.ops.quantize_weight(torch.empty(4, 7, device=on), 64)
+        with raises("act_bits must be 2, 4 or 8"):
+            dyq.ops.quantize_activations(x, 64, 16)
+        assert dyq.ops.gemm(x, qweight, scales, 64, 4).shape == (3, 16)
+
+
+@pytest.mark.parametrize("layout", ("sparse", "sparse_csr"))
+def test_non_dense_layouts_are_rejected(layer, layout):
+    qweight, scales, x = layer
+    convert = {"sparse": lambda t: t.to_sparse(), "sparse_csr": lambda t: t.to_sparse_csr()}[layout]
+    with raises("x must be a dense"):
+        dyq.ops.gemm(convert(x), qweight, scales, 64, 4)
+    with raises("weight must be a dense"):
+        dyq.ops.quantize_weight(convert(torch.randn(4, 64)), 64)
+
+
+def test_product_out_of_the_output_range_is_an_error(rng):
+    """Finite inputs whose true product overflows the dtype are reported, not returned as Inf or NaN."""
+    qweight, scales = dyq.ops.quantize_weight(torch.full((4, 64), 60000.0), 64)
+    x = torch.full((2, 64), 60000.0, dtype=torch.float16)
+    with raises("out of the range of Half"):
+        dyq.ops.gemm(x, qweight, scales, 64, 16)
+    with raises("out of the range of Half"):
+        dyq.ops.gemm(x, qweight, scales, 64, 8)

@@ -259,3 +259,50 @@ def test_weights_on_another_device_are_rejected(rng):
     qweight, scales = quantized_layer(16, 128, 64, rng)
     with pytest.raises(RuntimeError, match="qweight is on"):
         torch.ops.dyq.gemm(torch.randn(2, 128, device="cuda"), qweight, scales.cuda(), 64, 4)
+
+
+# ---- K that the group size does not divide ----------------------------------------------------------
+
+@pytest.mark.parametrize("m", ROWS)
+@pytest.mark.parametrize("act_bits", ACT_BITS)
+@pytest.mark.parametrize("k", (576, 960, 4096 + 96))
+def test_gemm_with_a_remainder_group_matches_reference_and_cpu(m, act_bits, k, rng):
+    """The last group of each row holds the remainder (576: SmolLM2's hidden size, 960: SmolVLA's)."""
+    for group_size in GROUP_SIZES:
+        qweight, scales = quantized_layer(N_ODD, k, group_size, rng)
+        x = random_activations((m, k), rng)
+        out = torch.ops.dyq.gemm(x.cuda(), qweight.cuda(), scales.cuda(), group_size, act_bits)
+        assert_gemm_close(out.cpu(), as_cuda_input(x, act_bits), qweight, scales, group_size, act_bits)
+
+
+@pytest.mark.parametrize("k", (576, 960, 96))
+def test_quantizers_with_a_remainder_group_are_identical_to_cpu(k, rng):
+    for group_size in GROUP_SIZES:
+        w = random_weight(33, k, rng)
+        qweight, scales = torch.ops.dyq.quantize_weight(w.cuda(), group_size)
+        cpu_qweight, cpu_scales = torch.ops.dyq.quantize_weight(w, group_size)
+        assert torch.equal(qweight.cpu(), cpu_qweight) and torch.equal(scales.cpu(), cpu_scales)
+        assert torch.equal(torch.ops.dyq.dequantize_weight(qweight, scales, group_size).cpu(),
+                           torch.ops.dyq.dequantize_weight(cpu_qweight, cpu_scales, group_size))
+        x = random_activations((5, k), rng)
+        for act_bits in QUANTIZED_BITS:
+            cuda = torch.ops.dyq.quantize_activations(x.cuda(), group_size, act_bits)
+            cpu = torch.ops.dyq.quantize_activations(x, group_size, act_bits)
+            assert all(torch.equal(a.cpu(), b) for a, b in zip(cuda, cpu))
+
+
+def test_k_not_a_multiple_of_32_is_rejected_on_cuda(rng):
+    with pytest.raises(RuntimeError, match="CUDA kernels need K a multiple of 32"):
+        torch.ops.dyq.quantize_weight(random_weight(4, 578, rng).cuda(), 64)
+    qweight, scales = quantized_layer(4, 578, 64, rng)
+    with pytest.raises(RuntimeError, match="CUDA kernels need K a multiple of 32"):
+        torch.ops.dyq.gemm(torch.randn(2, 578, device="cuda"), qweight.cuda(), scales.cuda(), 64, 4)
+
+
+@pytest.mark.parametrize("act_bits", ACT_BITS)
+def test_activations_near_the_fp32_range_are_finite_on_cuda(act_bits, rng):
+    qweight, scales = quantized_layer(24, 256, 64, rng)
+    x = torch.full((3, 256), 3e38)
+    x[:, ::2] = -3e38  # hi - lo exceeds FLT_MAX
+    _, act_scales, _ = torch.ops.dyq.quantize_activations(x.cuda(), 64, 4)
+    assert torch.isfinite(act_scales).all()

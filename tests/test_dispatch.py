@@ -341,3 +341,51 @@ def test_a_new_width_is_one_rung_of_the_ladder():
     actions = random_actions(15, steps=80)
     trace = replay_trajectory(actions, DispatchConfig(ladder=((0.3, 4), (0.5, 8))))
     assert set(np.unique(trace["target_bits"])) <= {4, 8, 16} and (trace["target_bits"] == 4).any()
+
+
+def warm_dispatcher(**config):
+    dispatcher = KinematicDispatcher(DispatchConfig(warmup=3, delay_window=1, **config))
+    for action in synthetic_trajectory(40, seed=1)[:30]:
+        dispatcher.step(action)
+    return dispatcher
+
+
+def test_an_overflowing_jerk_gives_full_precision_and_stays_out_of_the_history():
+    dispatcher = warm_dispatcher()
+    scale, window = dispatcher.nu_max, dispatcher.smoothed_jerk
+    dispatcher.step(np.array([0.0, 0, 0, 1e308, -1e308, 1e308, 0]))
+    dispatcher.step(np.array([0.0, 0, 0, -1e308, 1e308, -1e308, 0]))  # ||delta rotation|| overflows
+    assert dispatcher.bits == 16 and dispatcher.target_bits == 16 and dispatcher.sensitivity == math.inf
+    assert math.isnan(dispatcher.angular_jerk)
+    assert math.isfinite(dispatcher.nu_max) and math.isfinite(dispatcher.smoothed_jerk)
+    assert dispatcher._proxies["angular_jerk"]._scale.value() == dispatcher.nu_max
+    del scale, window
+
+
+def test_an_overflowing_translation_gives_full_precision():
+    dispatcher = warm_dispatcher()
+    dispatcher.step(np.array([1.7e308, 1.7e308, 0, 0, 0, 0, 0]))  # hypot overflows
+    assert dispatcher.bits == 16 and math.isfinite(dispatcher.mu_max)
+
+
+def test_an_overflowing_ratio_gives_full_precision():
+    dispatcher = KinematicDispatcher(DispatchConfig(warmup=3, delay_window=1, percentile=1))
+    for _ in range(5):
+        dispatcher.step(np.array([1e-300, 0, 0, 0, 0, 0, 0]))
+    dispatcher.step(np.array([1e300, 0, 0, 0, 0, 0, 0]))  # 1e300 / 1e-300 overflows
+    assert dispatcher.bits == 16 and dispatcher.target_bits == 16
+
+
+def test_fusion_of_a_non_finite_term_is_the_most_sensitive_value():
+    assert fuse_sensitivity((math.inf, 0.2), (0.5, 0.5)) == math.inf
+    assert fuse_sensitivity((-math.inf, math.inf), (0.5, 0.5)) == math.inf
+    assert allocate_bits(fuse_sensitivity((math.nan, 0.2), (0.5, 0.5)), paper_ladder()) == 16
+
+
+@pytest.mark.parametrize("action", [np.array([1 + 2j, 0, 0, 0, 0, 0, 0]), [0j] * 7,
+                                    torch.zeros(7, dtype=torch.complex64)])
+def test_complex_actions_are_rejected(action):
+    dispatcher = KinematicDispatcher()
+    with pytest.raises(TypeError, match="complex"):
+        dispatcher.step(action)
+    assert dispatcher.steps == 0

@@ -178,7 +178,7 @@ def test_reset_restores_the_initial_state(mode):
 
 @pytest.mark.parametrize("k, error", [(0, ValueError), (-3, ValueError), (2.0, TypeError), (None, TypeError)])
 def test_bad_delay_window_is_rejected(k, error):
-    with pytest.raises(error, match=r"delay_window \(K\) must be an int >= 1"):
+    with pytest.raises(error, match=r"delay_window \(K\) must be an int in \[1, 4096\]"):
         Hysteresis(k)
 
 

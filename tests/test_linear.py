@@ -102,8 +102,8 @@ def test_repr_names_the_format(rng):
 
 
 def test_misuse_is_reported(rng):
-    with pytest.raises(ValueError, match="in_features = 100 is not a multiple of group_size = 64"):
-        dyq.DyQLinear(100, 8, group_size=64)
+    with pytest.raises(ValueError, match="in_features must be an int >= 1"):
+        dyq.DyQLinear(0, 8, group_size=64)
     with pytest.raises(ValueError, match="group_size must be one of"):
         dyq.DyQLinear(128, 8, group_size=100)
     with pytest.raises(ValueError, match="act_bits must be one of"):
@@ -113,6 +113,8 @@ def test_misuse_is_reported(rng):
     layer = dyq.DyQLinear(128, 8)
     with pytest.raises(TypeError, match="DyQLinear input must be one of"):
         layer(torch.zeros(2, 128, dtype=torch.float64))
+    with pytest.raises(ValueError, match=r"input must have shape \[\.\.\., in_features = 128\]"):
+        layer(torch.zeros(2, 96))
     with pytest.raises(ValueError, match="bits must be one of"):
         layer.set_precision(5)
     with pytest.raises(TypeError, match="flag must be a dyq.PrecisionFlag"):

@@ -201,3 +201,63 @@ def test_gemm_with_no_input_features_is_the_bias(act_bits, rng):
     bias = torch.randn(6, generator=rng)
     assert torch.equal(dyq.ops.gemm(torch.randn(3, 0), qweight, scales, 32, act_bits, bias), bias.expand(3, 6))
     assert torch.equal(dyq.ops.gemm(torch.randn(3, 0), qweight, scales, 32, act_bits), torch.zeros(3, 6))
+
+
+# K that the group size does not divide: the last group of each row holds the remainder.
+REMAINDER_K = (576, 960, 130, 30, 6)
+
+
+@pytest.mark.parametrize("k", REMAINDER_K)
+@pytest.mark.parametrize("group_size", GROUP_SIZES)
+def test_weight_quantization_of_a_remainder_group_matches_reference(k, group_size, rng):
+    w = random_weight(11, k, rng)
+    qweight, scales = dyq.ops.quantize_weight(w, group_size)
+    codes, ref_scales = reference.quantize_weight(w, group_size)
+    assert scales.shape == (11, -(-k // group_size))
+    assert torch.equal(qweight, reference.pack_int4(codes)) and torch.equal(scales, ref_scales)
+    assert torch.equal(dyq.ops.dequantize_weight(qweight, scales, group_size),
+                       reference.dequantize_weight(qweight, scales, group_size))
+
+
+@pytest.mark.parametrize("act_bits", QUANTIZED_BITS)
+@pytest.mark.parametrize("k", (576, 960, 132, 36, 4))
+def test_activation_quantization_of_a_remainder_group_is_bit_identical(act_bits, k, rng):
+    for group_size in GROUP_SIZES:
+        x = random_activations((3, k), rng)
+        packed, scales, zeros = dyq.ops.quantize_activations(x, group_size, act_bits)
+        codes, ref_scales, ref_zeros = reference.quantize_activations(x, group_size, act_bits)
+        assert torch.equal(packed, reference.pack_activations(codes, act_bits))
+        assert torch.equal(scales, ref_scales) and torch.equal(zeros, ref_zeros)
+
+
+@pytest.mark.parametrize("act_bits", ACT_BITS)
+@pytest.mark.parametrize("k", REMAINDER_K)
+def test_gemm_with_a_remainder_group_matches_reference(act_bits, k, rng):
+    for group_size in GROUP_SIZES:
+        for m in (1, 5, 13, 40):  # the row kernels and the panel path
+            for dtype in DTYPES:
+                w = random_weight(21, k, rng)
+                qweight, scales = dyq.ops.quantize_weight(w, group_size)
+                x = random_activations((m, k), rng, dtype)
+                bias = torch.randn(21, generator=rng).to(dtype)
+                assert_gemm_close(dyq.ops.gemm(x, qweight, scales, group_size, act_bits, bias), x, qweight, scales,
+                                  group_size, act_bits, bias)
+
+
+@pytest.mark.parametrize("act_bits", ACT_BITS)
+@pytest.mark.parametrize("magnitude", (1e37, 1e38, 3e38))
+def test_activations_near_the_fp32_range_give_the_reference_answer(act_bits, magnitude, rng):
+    """Finite inputs with a finite product give finite outputs: no scale or sum overflows."""
+    # Small weights keep the true product within fp32 (an out-of-range product is an error, tested elsewhere).
+    qweight, scales = dyq.ops.quantize_weight(random_weight(24, 256, rng) * 1e-3, 64)
+    x = (torch.rand(13, 256, generator=rng) * 2 - 1) * magnitude
+    x[0, :64] = magnitude  # a group whose range hi - lo exceeds FLT_MAX
+    x[0, 64:128] = -magnitude
+    for rows in (x[:3], x):
+        out = dyq.ops.gemm(rows, qweight, scales, 64, act_bits)
+        assert torch.isfinite(out).all()
+        assert_gemm_close(out, rows, qweight, scales, 64, act_bits)
+    if act_bits != 16:
+        _, act_scales, _ = dyq.ops.quantize_activations(x, 64, act_bits)
+        assert torch.isfinite(act_scales).all()
+        assert torch.equal(act_scales, reference.quantize_activations(x, 64, act_bits)[1])

@@ -97,11 +97,99 @@ def test_bert_encoder_with_skip_patterns():
     assert ((hidden - expected).norm() / expected.norm()).item() < 0.1
 
 
-def test_layers_that_do_not_fit_the_group_size_are_skipped_with_a_reason():
-    model = torch.nn.Sequential(torch.nn.Linear(128, 96), torch.nn.ReLU(), torch.nn.Linear(96, 10))
+def test_layers_of_any_width_are_converted():
+    """in_features need not be a multiple of the group size (the last group holds the remainder), nor even."""
+    model = torch.nn.Sequential(torch.nn.Linear(128, 96), torch.nn.ReLU(), torch.nn.Linear(96, 7),
+                                torch.nn.Linear(7, 5))
+    x = torch.randn(3, 128)
+    report = dyq.quantize_model(model, group_size=64, skip=(), act_bits=8)
+    assert report.converted == ["0", "2", "3"] and report.skipped == {}
+    out = model(x)
+    assert out.shape == (3, 5) and torch.isfinite(out).all()
+    assert model[3].qweight.shape == (5, 4)  # the odd in_features padded with a zero column
+
+
+def test_a_bare_linear_is_converted_in_place():
+    linear = torch.nn.Linear(96, 8)
+    x = torch.randn(2, 96)
+    expected = linear(x)
+    report = dyq.quantize_model(linear, group_size=32, skip=())
+    assert isinstance(linear, dyq.DyQLinear) and report.converted == [""]
+    assert ((linear(x) - expected).abs() < 0.05 * expected.abs().max()).all()
+
+
+def test_a_shared_linear_becomes_one_dyq_layer_everywhere_and_the_report_says_so():
+    shared = torch.nn.Linear(64, 64)
+    model = torch.nn.Module()
+    model.first, model.second = torch.nn.Sequential(shared), torch.nn.Sequential(torch.nn.ReLU(), shared)
     report = dyq.quantize_model(model, group_size=64, skip=())
-    assert report.converted == ["0"]
-    assert report.skipped == {"2": "in_features = 96 is not a multiple of 64"}
+    assert model.first[0] is model.second[1] and isinstance(model.first[0], dyq.DyQLinear)
+    assert report.converted == ["first.0"] and report.shared == {"first.0": ["second.1"]}
+    assert "shared first.0: also held as second.1" in str(report)
+
+
+def test_a_shared_linear_is_skipped_if_any_of_its_names_matches():
+    shared = torch.nn.Linear(64, 64)
+    model = torch.nn.Module()
+    model.body, model.lm_head = shared, shared
+    report = dyq.quantize_model(model, group_size=64)
+    assert type(model.body) is torch.nn.Linear and "body" in report.skipped
+
+
+def test_a_second_call_says_the_model_is_already_quantized():
+    model = tiny_llama()
+    dyq.quantize_model(model)
+    again = dyq.quantize_model(model)
+    assert again.converted == [] and len(again.already_quantized) == 14
+    assert "already quantized (14 DyQLinear layers)" in str(again)
+
+
+def test_copies_and_reloads_keep_one_working_flag_each(tmp_path):
+    import io
+
+    model = tiny_llama()
+    flag = dyq.PrecisionFlag(16)
+    dyq.quantize_model(model, flag=flag)
+    buffer = io.BytesIO()
+    torch.save(model, buffer)
+    buffer.seek(0)
+    for copy_ in (copy.deepcopy(model), torch.load(buffer, weights_only=False)):
+        copy_flag = dyq.model_flag(copy_)
+        assert copy_flag is not flag
+        dyq.set_precision(copy_, 2)
+        assert copy_flag.bits == 2 and flag.bits == 16
+        assert all(layer.precision == 2 for layer in copy_.modules() if isinstance(layer, dyq.DyQLinear))
+    assert dyq.model_flag(model) is flag
+
+
+@pytest.mark.parametrize("group_size", (64, 128))
+def test_save_and_load_quantized_round_trip_through_safetensors(tmp_path, group_size):
+    model = tiny_llama()
+    flag = dyq.PrecisionFlag(4)
+    dyq.quantize_model(model, group_size=group_size, flag=flag)
+    dyq.save_quantized(model, tmp_path)
+    assert (tmp_path / "model.safetensors").exists() and (tmp_path / "dyq_config.json").exists()
+    loaded = dyq.load_quantized(tiny_llama(), tmp_path)
+    assert dyq.model_flag(loaded).bits == 4
+    ids = torch.randint(0, 512, (2, 9), generator=torch.Generator().manual_seed(3))
+    with torch.no_grad():
+        assert torch.equal(loaded(ids).logits, model(ids).logits)
+    from_config = dyq.load_quantized(model.config, tmp_path)
+    assert isinstance(from_config.model.layers[0].self_attn.q_proj, dyq.DyQLinear)
+    assert from_config.model.layers[0].self_attn.q_proj.group_size == group_size
+
+
+def test_load_quantized_reports_what_does_not_fit(tmp_path):
+    model = tiny_llama()
+    dyq.quantize_model(model)
+    dyq.save_quantized(model, tmp_path)
+    narrower = transformers.LlamaForCausalLM(transformers.LlamaConfig(
+        vocab_size=512, hidden_size=64, intermediate_size=256, num_hidden_layers=2, num_attention_heads=4,
+        num_key_value_heads=2))
+    with pytest.raises(ValueError, match="saved as Linear"):
+        dyq.load_quantized(narrower, tmp_path)
+    with pytest.raises(FileNotFoundError, match="no dyq_config.json"):
+        dyq.load_quantized(tiny_llama(), tmp_path / "missing")
 
 
 def test_set_precision_needs_dyq_layers():

@@ -251,3 +251,106 @@ def test_bad_runtime_arguments_are_rejected(kwargs, error, message):
     arguments = {"dispatcher": KinematicDispatcher(), "flag": PrecisionFlag(), **kwargs}
     with pytest.raises(error, match=message):
         DyQRuntime(**arguments)
+
+
+class FailingOnce:
+    """A barrier (or decode) that raises on its n-th call only."""
+
+    def __init__(self, fail_at):
+        self.calls, self.fail_at = 0, fail_at
+
+    def __call__(self, *args):
+        self.calls += 1
+        if self.calls == self.fail_at:
+            raise RuntimeError("device lost")
+
+
+def bits_of_a_clean_run():
+    with DyQRuntime(KinematicDispatcher(CONFIG), PrecisionFlag(), barrier=None) as clean:
+        model = FakeModel(clean.flag)
+        control_loop(clean, model, ACTIONS)
+    return model.decode_bits
+
+
+def test_a_failing_barrier_reaches_the_caller_and_the_next_steps_run_normally():
+    barrier = FailingOnce(fail_at=1)
+    with DyQRuntime(KinematicDispatcher(CONFIG), PrecisionFlag(), barrier=barrier) as runtime:
+        model = FakeModel(runtime.flag)
+        previous, failures = None, 0
+        for action in ACTIONS:
+            try:
+                runtime.step(previous, model.prefill, model.decode)
+            except RuntimeError as err:
+                assert "device lost" in str(err)
+                failures += 1
+            previous = action
+        assert failures == 1 and barrier.calls > 1
+        # Every step but the failed one decoded at the bits the dispatcher chose, as without a failure.
+        clean = bits_of_a_clean_run()
+        failed_step = next(i for i, (a, b) in enumerate(zip(model.decode_bits, clean)) if a != b) \
+            if model.decode_bits != clean[:len(model.decode_bits)] else len(model.decode_bits)
+        assert model.decode_bits == clean[:failed_step] + clean[failed_step + 1:]
+
+
+def test_a_failing_prefill_write_does_not_leave_a_pending_step():
+    barrier = FailingOnce(fail_at=1)
+    with DyQRuntime(KinematicDispatcher(CONFIG), PrecisionFlag(8), prefill_bits=2, barrier=barrier) as runtime:
+        with pytest.raises(RuntimeError, match="device lost"):
+            runtime.begin_step(ACTIONS[0])
+        runtime.begin_step(ACTIONS[1])  # not "begin_step called twice"
+        assert runtime.flag.bits == 2
+        assert runtime.publish() == 16
+
+
+def test_a_failing_flag_write_reaches_the_caller_and_the_runtime_recovers(runtime, monkeypatch):
+    writes = []
+    write = runtime._write
+
+    def write_fails_once(bits):
+        writes.append(bits)
+        if len(writes) == 1:
+            raise OSError("flag unmapped")
+        return write(bits)
+
+    monkeypatch.setattr(runtime, "_write", write_fails_once)
+    previous, failures = None, 0
+    for action in ACTIONS[:30]:
+        try:
+            runtime.step(previous, lambda: None, lambda _: None)
+        except OSError:
+            failures += 1
+        previous = action
+    assert failures == 1 and len(runtime.stats) == 29
+    assert runtime.stats[-1].bits == runtime.flag.bits == runtime.dispatcher.bits
+
+
+def test_a_failing_decode_reaches_the_caller_and_the_next_step_runs_normally(runtime):
+    decode = FailingOnce(fail_at=3)
+    previous = None
+    for i, action in enumerate(ACTIONS[:10]):
+        if i == 2:
+            with pytest.raises(RuntimeError, match="device lost"):
+                runtime.step(previous, lambda: None, decode)
+        else:
+            runtime.step(previous, lambda: None, decode)
+        previous = action
+    assert len(runtime.stats) == 10 and runtime.dispatcher.steps == 9
+    assert all(s.decode_ms >= 0 for s in runtime.stats)
+
+
+def test_force_precision_whose_write_fails_does_not_stay_forced():
+    barrier = FailingOnce(fail_at=1)
+    with DyQRuntime(KinematicDispatcher(CONFIG), PrecisionFlag(), barrier=barrier) as runtime:
+        with pytest.raises(RuntimeError, match="device lost"):
+            with force_precision(runtime, 2):
+                pass
+        assert runtime.flag.bits == 16
+        runtime.step(None, lambda: None, lambda _: None)
+        assert runtime.stats[-1].forced is False and runtime.stats[-1].bits == 16
+
+
+def test_a_closed_runtime_says_so():
+    runtime = DyQRuntime(KinematicDispatcher(CONFIG), PrecisionFlag(), barrier=None)
+    runtime.close()
+    with pytest.raises(RuntimeError, match="DyQRuntime is closed"):
+        runtime.step(None, lambda: None, lambda _: None)

@@ -88,8 +88,10 @@ def test_a_seeded_episode_reproduces_exactly(runner, env):
     first = run_episode(runner, TASK, "dyq", seed=3, env=env)
     run_episode(runner, TASK, "w4a2", seed=4, env=env)  # something else in between
     again = run_episode(runner, TASK, "dyq", seed=3, env=env)
-    assert first.actions == again.actions and first.bits == again.bits
-    assert first.final_eef == again.final_eef
+    fresh = run_episode(runner, TASK, "dyq", seed=3)  # in a new environment
+    for other in (again, fresh):
+        assert first.actions == other.actions and first.bits == other.bits
+        assert first.final_eef == other.final_eef
 
 
 def test_widths_run_in_a_worker_process_equal_the_widths_chosen(policy, tmp_path):

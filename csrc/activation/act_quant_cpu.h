@@ -8,7 +8,8 @@
 namespace dyq::cpu {
 
 // x: [m, k] row-major of `dtype`. act_bits: a quantized width of common/precision.h (the caller checks it).
-// Writes packed codes uint8 [m, k*act_bits/8], scales fp32 [m, k/group_size], zeros uint8 [m, k/group_size].
+// Writes packed codes uint8 [m, k*act_bits/8] (k*act_bits a multiple of 8), scales fp32 [m, groups] and zeros
+// uint8 [m, groups], groups = ceil(k/group_size) (the last group holds the remainder).
 void quantize_activations(const void* x, ScalarType dtype, int64_t m, int64_t k, int group_size, int act_bits,
                           uint8_t* packed, float* scales, uint8_t* zeros);
 

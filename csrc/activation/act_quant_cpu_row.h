@@ -45,30 +45,36 @@ __m256 load_fp32_lanes(const Element* x) {
 }
 #endif
 
-// x converted to fp32 (k a multiple of 32).
+// x converted to fp32 (any k: the vector loop covers whole lanes, the rest is converted one by one).
 template <typename Element>
 void load_row_fp32(const Element* x, int64_t k, float* out) {
   if constexpr (std::is_same_v<Element, float>) {
     std::memcpy(out, x, k * sizeof(float));
   } else {
+    int64_t i = 0;
 #if defined(DYQ_CPU_ISA_AVX512)
-    for (int64_t i = 0; i < k; i += 16) _mm512_storeu_ps(out + i, load_fp32_lanes(x + i));
+    for (; i + 16 <= k; i += 16) _mm512_storeu_ps(out + i, load_fp32_lanes(x + i));
 #elif defined(DYQ_CPU_ISA_AVX2)
-    for (int64_t i = 0; i < k; i += 8) _mm256_storeu_ps(out + i, load_fp32_lanes(x + i));
-#else
-    for (int64_t i = 0; i < k; ++i) out[i] = to_float(x[i]);
+    for (; i + 8 <= k; i += 8) _mm256_storeu_ps(out + i, load_fp32_lanes(x + i));
 #endif
+    for (; i < k; ++i) out[i] = to_float(x[i]);
   }
 }
 
 #if defined(DYQ_CPU_ISA_AVX512)
-// Codes q_x of one group of fp32 values (group_size a multiple of 16); returns the group's (s_x, z_x).
-inline ActivationGroupParams quantize_group(const float* v, int group_size, int act_bits, uint8_t* codes) {
+// Codes q_x of one group of `columns` fp32 values (a full group, or the remainder at the end of a row);
+// returns the group's (s_x, z_x). Lanes past `columns` load as 0, which changes neither the range (it
+// always holds 0) nor finiteness, and are not stored.
+inline ActivationGroupParams quantize_group(const float* v, int64_t columns, int act_bits, uint8_t* codes) {
+  auto lanes = [&](int64_t i) {
+    const int64_t rest = columns - i;
+    return rest >= 16 ? kAll16 : static_cast<__mmask16>((1u << rest) - 1);
+  };
   const __m512 zero = _mm512_setzero_ps();
   __m512 group_min = zero, group_max = zero;
   __mmask16 nonfinite = 0;
-  for (int i = 0; i < group_size; i += 16) {
-    const __m512 values = _mm512_loadu_ps(v + i);
+  for (int64_t i = 0; i < columns; i += 16) {
+    const __m512 values = _mm512_maskz_loadu_ps(lanes(i), v + i);
     nonfinite |= _mm512_cmp_ps_mask(_mm512_sub_ps(values, values), zero, _CMP_NEQ_UQ);  // NaN or Inf
     group_min = min_ps(group_min, values);
     group_max = max_ps(group_max, values);
@@ -76,26 +82,33 @@ inline ActivationGroupParams quantize_group(const float* v, int group_size, int 
   const ActivationGroupParams params = activation_group_params(reduce_lanes<MinLanes>(group_min),
                                                                reduce_lanes<MaxLanes>(group_max), act_bits, nonfinite != 0);
   if (nonfinite != 0) {
-    std::memset(codes, 0, group_size);
+    std::memset(codes, 0, columns);
     return params;
   }
   const __m512 levels = _mm512_set1_ps(static_cast<float>((1 << act_bits) - 1));
   const __m512 scale = _mm512_set1_ps(params.scale);
   const __m512 zero_point = _mm512_set1_ps(static_cast<float>(params.zero));
-  for (int i = 0; i < group_size; i += 16) {
-    const __m512 ratio = _mm512_div_ps(_mm512_loadu_ps(v + i), scale);
+  for (int64_t i = 0; i < columns; i += 16) {
+    const __m512 ratio = _mm512_div_ps(_mm512_maskz_loadu_ps(lanes(i), v + i), scale);
     const __m512 rounded = round_nearest_ps(ratio);
     const __m512 code = min_ps(max_ps(_mm512_add_ps(rounded, zero_point), zero), levels);
-    _mm_storeu_si128(reinterpret_cast<__m128i*>(codes + i), cvtepi32_epi8(cvtps_epi32(code)));
+    _mm512_mask_cvtepi32_storeu_epi8(codes + i, lanes(i), cvtps_epi32(code));
   }
   return params;
 }
 #elif defined(DYQ_CPU_ISA_AVX2)
-inline ActivationGroupParams quantize_group(const float* v, int group_size, int act_bits, uint8_t* codes) {
+// As above, 8 lanes at a time; the lanes past `columns` load as 0 (vmaskmovps) and are not stored.
+inline ActivationGroupParams quantize_group(const float* v, int64_t columns, int act_bits, uint8_t* codes) {
+  auto load = [&](int64_t i) {
+    const int64_t rest = columns - i;
+    if (rest >= 8) return _mm256_loadu_ps(v + i);
+    const __m256i lane = _mm256_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7);
+    return _mm256_maskload_ps(v + i, _mm256_cmpgt_epi32(_mm256_set1_epi32(static_cast<int>(rest)), lane));
+  };
   const __m256 zero = _mm256_setzero_ps();
   __m256 group_min = zero, group_max = zero, nonfinite = zero;
-  for (int i = 0; i < group_size; i += 8) {
-    const __m256 values = _mm256_loadu_ps(v + i);
+  for (int64_t i = 0; i < columns; i += 8) {
+    const __m256 values = load(i);
     nonfinite = _mm256_or_ps(nonfinite, _mm256_cmp_ps(_mm256_sub_ps(values, values), zero, _CMP_NEQ_UQ));
     group_min = _mm256_min_ps(group_min, values);
     group_max = _mm256_max_ps(group_max, values);
@@ -106,45 +119,54 @@ inline ActivationGroupParams quantize_group(const float* v, int group_size, int 
                               reduce_lanes<MaxLanes>(group_max), act_bits,
                               any_nonfinite);
   if (any_nonfinite) {
-    std::memset(codes, 0, group_size);
+    std::memset(codes, 0, columns);
     return params;
   }
   const __m256 levels = _mm256_set1_ps(static_cast<float>((1 << act_bits) - 1));
   const __m256 scale = _mm256_set1_ps(params.scale);
   const __m256 zero_point = _mm256_set1_ps(static_cast<float>(params.zero));
-  for (int i = 0; i < group_size; i += 8) {
-    const __m256 ratio = _mm256_div_ps(_mm256_loadu_ps(v + i), scale);
+  for (int64_t i = 0; i < columns; i += 8) {
+    const __m256 ratio = _mm256_div_ps(load(i), scale);
     const __m256 rounded = _mm256_round_ps(ratio, _MM_FROUND_TO_NEAREST_INT | _MM_FROUND_NO_EXC);
     const __m256i code = _mm256_cvtps_epi32(_mm256_min_ps(_mm256_max_ps(_mm256_add_ps(rounded, zero_point), zero), levels));
     const __m128i words = _mm_packus_epi32(_mm256_castsi256_si128(code), _mm256_extracti128_si256(code, 1));
-    _mm_storel_epi64(reinterpret_cast<__m128i*>(codes + i), _mm_packus_epi16(words, words));
+    const __m128i bytes = _mm_packus_epi16(words, words);
+    if (columns - i >= 8) {
+      _mm_storel_epi64(reinterpret_cast<__m128i*>(codes + i), bytes);
+    } else {
+      alignas(16) uint8_t tail[16];
+      _mm_store_si128(reinterpret_cast<__m128i*>(tail), bytes);
+      std::memcpy(codes + i, tail, columns - i);
+    }
   }
   return params;
 }
 #else
-inline ActivationGroupParams quantize_group(const float* v, int group_size, int act_bits, uint8_t* codes) {
+inline ActivationGroupParams quantize_group(const float* v, int64_t columns, int act_bits, uint8_t* codes) {
   float group_min = 0.0f;
   float group_max = 0.0f;
   bool nonfinite = false;
-  for (int i = 0; i < group_size; ++i) {
+  for (int64_t i = 0; i < columns; ++i) {
     nonfinite |= !std::isfinite(v[i]);
     group_min = std::fmin(group_min, v[i]);
     group_max = std::fmax(group_max, v[i]);
   }
   const ActivationGroupParams params = activation_group_params(group_min, group_max, act_bits, nonfinite);
-  for (int i = 0; i < group_size; ++i) codes[i] = static_cast<uint8_t>(activation_code(v[i], params, act_bits));
+  for (int64_t i = 0; i < columns; ++i) codes[i] = static_cast<uint8_t>(activation_code(v[i], params, act_bits));
   return params;
 }
 #endif
 
-// Quantizes the k values of `x` (k a multiple of group_size): codes[0..k) receive the unsigned codes
-// q_x, params[0..k/group_size) each group's (s_x, z_x). `row_fp32` is scratch of k floats.
+// Quantizes the k values of `x`: codes[0..k) receive the unsigned codes q_x, params[0..ceil(k/group_size))
+// each group's (s_x, z_x), the last group holding the remainder when group_size does not divide k.
+// `row_fp32` is scratch of k floats.
 template <typename Element>
 void quantize_activation_row(const Element* x, int64_t k, int group_size, int act_bits, float* row_fp32,
                              uint8_t* codes, ActivationGroupParams* params) {
   load_row_fp32(x, k, row_fp32);
-  for (int64_t g = 0; g < k / group_size; ++g) {
-    params[g] = quantize_group(row_fp32 + g * group_size, group_size, act_bits, codes + g * group_size);
+  for (int64_t g = 0; g < group_count(k, group_size); ++g) {
+    params[g] = quantize_group(row_fp32 + g * group_size, group_columns(k, group_size, g), act_bits,
+                               codes + g * group_size);
   }
 }
 

@@ -22,10 +22,13 @@ __device__ __forceinline__ const void* run_address(const void* x, ScalarType dty
   return static_cast<const char*>(x) + element * element_bytes;
 }
 
-// Grid-stride over runs, a whole warp at a time so that the shuffles of a group see all its lanes.
+// Grid-stride over runs, a whole warp at a time so that the shuffles of a group see all its lanes. Rows
+// are walked in whole groups: when the group size does not divide k, the runs past k of the last group are
+// inactive (their values 0, which change no group's range) and store nothing.
 __device__ void quantize_rows(const void* x, ScalarType dtype, int64_t m, int64_t k, int group_size, int act_bits,
                               CodeTarget target) {
-  const int64_t runs_per_row = k / 8;
+  const int64_t groups = group_count(k, group_size);
+  const int64_t runs_per_row = groups * group_size / 8;
   const int64_t total_runs = m * runs_per_row;
   const int lane = threadIdx.x % 32;
   const int lanes_per_group = group_size / 8;
@@ -33,18 +36,19 @@ __device__ void quantize_rows(const void* x, ScalarType dtype, int64_t m, int64_
   for (int64_t warp_first = static_cast<int64_t>(blockIdx.x) * blockDim.x + (threadIdx.x & ~31);
        warp_first < total_runs; warp_first += stride) {
     const int64_t run = warp_first + lane;
-    const bool active = run < total_runs;
-    const int64_t row = active ? run / runs_per_row : 0;
-    const int64_t col = active ? (run % runs_per_row) * 8 : 0;
+    const bool in_rows = run < total_runs;
+    const int64_t row = in_rows ? run / runs_per_row : 0;
+    const int64_t col = in_rows ? (run % runs_per_row) * 8 : 0;
+    const bool active = in_rows && col < k;
     float v[8] = {};
     if (active) load8_as_float(run_address(x, dtype, row * k + col), dtype, v);
     const ActivationGroupParams params = group_params_across_lanes(v, active, lanes_per_group, act_bits);
-    if (!active) continue;  // the warp's last iteration: no collective follows
+    if (!active) continue;  // the loop bound is the same for the whole warp: every lane meets every shuffle
     uint32_t codes[8];
     activation_codes8(v, params, act_bits, codes);
     store_packed_codes8(codes, act_bits, target.codes + row * target.row_bytes + col * act_bits / 8);
     if (lane % lanes_per_group == 0) {
-      const int64_t group = row * (k / group_size) + col / group_size;
+      const int64_t group = row * groups + col / group_size;
       target.scales[group] = params.scale;
       target.zeros[group] = static_cast<uint8_t>(params.zero);
     }
@@ -92,8 +96,9 @@ __global__ void __launch_bounds__(kThreads)
       [] {});  // any other value: nothing to prepare; the GEMM reads bits_used and writes NaN
 }
 
+// Grid-stride loops: any grid is correct; this one gives every run of whole groups a thread.
 unsigned grid_for_runs(int64_t m, int64_t k) {
-  const int64_t blocks = (m * (k / 8) + kThreads - 1) / kThreads;
+  const int64_t blocks = (m * ((k + 127) / 128 * 16) + kThreads - 1) / kThreads;
   return static_cast<unsigned>(blocks < 1 ? 1 : (blocks > 65535 ? 65535 : blocks));
 }
 

@@ -11,8 +11,9 @@
 
 namespace dyq::cuda {
 
-// x: [m, k] row-major of `dtype` (16-byte aligned). act_bits in {2, 4, 8}. Writes the canonical packed
-// codes uint8 [m, k*act_bits/8], scales fp32 [m, k/group_size] and zero points uint8 [m, k/group_size].
+// x: [m, k] row-major of `dtype` (16-byte aligned), k a multiple of 32. act_bits in {2, 4, 8}. Writes the
+// canonical packed codes uint8 [m, k*act_bits/8], scales fp32 [m, groups] and zero points uint8 [m, groups],
+// groups = ceil(k/group_size) (the last group holds the remainder).
 cudaError_t quantize_activations(const void* x, ScalarType dtype, int64_t m, int64_t k, int group_size, int act_bits,
                                  uint8_t* packed, float* scales, uint8_t* zeros, cudaStream_t stream);
 
@@ -20,8 +21,8 @@ cudaError_t quantize_activations(const void* x, ScalarType dtype, int64_t m, int
 struct PreparedActivations {
   int32_t* bits_used;  // the bit-width read from the flag, for the GEMM launched next to reuse
   uint8_t* codes;      // b in {2,4,8}: packed codes, rows padded to 16 bytes; b = 16: bf16 copy of x
-  float* scales;       // [m, k/group_size]
-  uint8_t* zeros;      // [m, k/group_size]
+  float* scales;       // [m, ceil(k/group_size)]
+  uint8_t* zeros;      // [m, ceil(k/group_size)]
 };
 
 // Row pitch in bytes of PreparedActivations::codes: cp.async moves 16-byte chunks, so rows start 16-byte

@@ -23,8 +23,19 @@ constexpr int kWeightQMin = -8;
 constexpr int kWeightQMax = 7;
 constexpr int kFallbackBits = 16;  // act_bits == 16: the unquantized (BF16) fallback path
 
-// Bytes of packed activation codes for k columns at a quantized act_bits (common/precision.h).
+// Bytes of packed activation codes for k columns at a quantized act_bits (common/precision.h); k * act_bits
+// is a multiple of 8 (the op checks it).
 DYQ_HOST_DEVICE int64_t packed_activation_bytes(int64_t k, int act_bits) { return k * act_bits / 8; }
+
+// Groups of a row of k columns: ceil(k / group_size). When group_size does not divide k, the last group
+// holds the remainder, k - (groups - 1) * group_size columns (docs/numerics.md, section 4).
+DYQ_HOST_DEVICE int64_t group_count(int64_t k, int64_t group_size) { return (k + group_size - 1) / group_size; }
+
+// Columns of group g of a row of k columns.
+DYQ_HOST_DEVICE int64_t group_columns(int64_t k, int64_t group_size, int64_t g) {
+  const int64_t rest = k - g * group_size;
+  return rest < group_size ? rest : group_size;
+}
 
 // Round half to even, the rounding of every quantizer in dyq.
 DYQ_HOST_DEVICE float round_half_even(float v) {
@@ -67,7 +78,10 @@ DYQ_HOST_DEVICE ActivationGroupParams activation_group_params(float group_min, f
   if (nonfinite) return {NAN, 0};
   const float lo = group_min < 0.0f ? group_min : 0.0f;
   const float hi = group_max > 0.0f ? group_max : 0.0f;
-  const float scale = (hi - lo) / levels;
+  float scale = (hi - lo) / levels;
+  // hi - lo overflows only when the range exceeds FLT_MAX; halving both ends is exact there (they are far
+  // from the subnormals), so this is the value fp32 with a wider exponent would give, and it is finite.
+  if (scale > 3.4028235e38f) scale = ((0.5f * hi - 0.5f * lo) / levels) * 2.0f;
   if (scale == 0.0f) return {1.0f, 0};
   const int zero = static_cast<int>(clampf(round_half_even(-lo / scale), 0.0f, levels));
   return {scale, zero};

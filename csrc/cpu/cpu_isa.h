@@ -14,7 +14,7 @@ namespace dyq::cpu {
 
 // The kernels of one path, with the arguments of dyq::cpu::gemm and dyq::cpu::quantize_activations.
 struct CpuKernelSet {
-  void (*gemm)(const void* x, ScalarType dtype, const uint8_t* qweight, const float* scales, const void* bias,
+  bool (*gemm)(const void* x, ScalarType dtype, const uint8_t* qweight, const float* scales, const void* bias,
                int64_t m, int64_t n, int64_t k, int group_size, int act_bits, void* out);
   void (*quantize_activations)(const void* x, ScalarType dtype, int64_t m, int64_t k, int group_size, int act_bits,
                                uint8_t* packed, float* scales, uint8_t* zeros);

@@ -6,9 +6,9 @@
 
 namespace dyq::cpu {
 
-void gemm(const void* x, ScalarType dtype, const uint8_t* qweight, const float* scales, const void* bias,
+bool gemm(const void* x, ScalarType dtype, const uint8_t* qweight, const float* scales, const void* bias,
           int64_t m, int64_t n, int64_t k, int group_size, int act_bits, void* out) {
-  active_cpu_path().kernels->gemm(x, dtype, qweight, scales, bias, m, n, k, group_size, act_bits, out);
+  return active_cpu_path().kernels->gemm(x, dtype, qweight, scales, bias, m, n, k, group_size, act_bits, out);
 }
 
 }  // namespace dyq::cpu

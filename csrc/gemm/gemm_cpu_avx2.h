@@ -14,10 +14,14 @@
 //   (n ^ 8) - 8 and converted to fp32; x is stored as even/odd halves per 16 columns to match, and each
 //   group's fp32 partial sum is scaled by s_w once.
 // Large M has no panel path here (the AVX-512 one is built on VNNI and 32 registers).
+// K need only be even: the bytes of a row's last, partial block or chunk past K read as code 0 (as do the
+// activation codes there), so the last group, which holds the remainder when G does not divide K, sums
+// only its own columns (docs/numerics.md, section 4).
 #pragma once
 
 #include <algorithm>
 #include <cstdint>
+#include <cstring>
 #include <type_traits>
 #include <utility>
 #include <vector>
@@ -54,7 +58,7 @@ std::vector<QuantizedBlock> quantize_activation_blocks(const Element* x, int64_t
   parallel_for(0, m, 4, [&](int64_t row_begin, int64_t row_end) {
     std::vector<float> row(k);
     std::vector<uint8_t> codes(blocks * kBlockColumns, 0);
-    std::vector<ActivationGroupParams> params(k / group_size);
+    std::vector<ActivationGroupParams> params(group_count(k, group_size));
     for (int64_t r = row_begin; r < row_end; ++r) {
       quantize_activation_row(x + r * k, k, group_size, act_bits, row.data(), codes.data(), params.data());
       for (int64_t t = 0; t < blocks; ++t) {
@@ -76,16 +80,21 @@ std::vector<QuantizedBlock> quantize_activation_blocks(const Element* x, int64_t
   return quantized;
 }
 
-// act_bits 16: x in fp32, each 16 columns stored as the 8 even then the 8 odd ones.
+// Columns rounded up to whole 16-column chunks: the row pitch of the act_bits 16 operand.
+inline int64_t chunk_padded(int64_t k) { return (k + kChunkColumns - 1) / kChunkColumns * kChunkColumns; }
+
+// act_bits 16: x in fp32, each 16 columns stored as the 8 even then the 8 odd ones; rows of
+// chunk_padded(k) values, zero past k.
 template <typename Element>
 std::vector<float> deinterleave_activations(const Element* x, int64_t m, int64_t k) {
-  std::vector<float> deinterleaved(m * k);
+  const int64_t pitch = chunk_padded(k);
+  std::vector<float> deinterleaved(m * pitch);
   parallel_for(0, m, 4, [&](int64_t row_begin, int64_t row_end) {
-    std::vector<float> row(k);
+    std::vector<float> row(pitch, 0.0f);
     for (int64_t r = row_begin; r < row_end; ++r) {
       load_row_fp32(x + r * k, k, row.data());
-      float* out = deinterleaved.data() + r * k;
-      for (int64_t c = 0; c < k; c += kChunkColumns) {
+      float* out = deinterleaved.data() + r * pitch;
+      for (int64_t c = 0; c < pitch; c += kChunkColumns) {
         for (int j = 0; j < 8; ++j) {
           out[c + j] = row[c + 2 * j];
           out[c + 8 + j] = row[c + 2 * j + 1];
@@ -111,7 +120,8 @@ template <int kRows>
 void quantized_row_kernel(const uint8_t* weight_row, const float* scales_row, int64_t k, int group_size,
                           const QuantizedBlock* const* rows, float* sums) {
   const int64_t full_blocks = k / kBlockColumns;
-  const int64_t blocks = full_blocks + (k % kBlockColumns != 0);
+  const int64_t tail_columns = k % kBlockColumns;
+  const int64_t blocks = full_blocks + (tail_columns != 0);
   const int group_shift = __builtin_ctz(group_size);
   const __m256i ones_u8 = _mm256_set1_epi8(1);
   const __m256i ones_s16 = _mm256_set1_epi16(1);
@@ -120,16 +130,24 @@ void quantized_row_kernel(const uint8_t* weight_row, const float* scales_row, in
   for (int64_t t = 0; t < blocks; ++t) {
     const bool full = t < full_blocks;
     const uint8_t* packed = weight_row + t * (kBlockColumns / 2);
-    // The tail block holds 32 columns: 16 bytes, the rest read as code 0.
-    const __m256i bytes = full ? _mm256_loadu_si256(reinterpret_cast<const __m256i*>(packed))
-                               : _mm256_zextsi128_si256(_mm_loadu_si128(reinterpret_cast<const __m128i*>(packed)));
+    // The tail block holds tail_columns / 2 bytes; the rest read as code 0.
+    __m256i bytes;
+    if (full) {
+      bytes = _mm256_loadu_si256(reinterpret_cast<const __m256i*>(packed));
+    } else {
+      alignas(32) uint8_t tail[32] = {};
+      std::memcpy(tail, packed, tail_columns / 2);
+      bytes = _mm256_load_si256(reinterpret_cast<const __m256i*>(tail));
+    }
     __m256i even, odd;
     split_weight_nibbles(bytes, even, odd);
     const __m256 weight_sums = _mm256_cvtepi32_ps(_mm256_madd_epi16(
         _mm256_add_epi16(_mm256_maddubs_epi16(ones_u8, even), _mm256_maddubs_epi16(ones_u8, odd)), ones_s16));
-    // Group 32 splits a full block between two groups (lanes 0-3 and 4-7); larger groups hold it whole.
+    // Group 32 splits a block between two groups (lanes 0-3 and 4-7) when the block reaches past its
+    // first 32 columns; larger groups hold it whole.
     const float* block_scales = scales_row + ((t * kBlockColumns) >> group_shift);
-    const __m256 weight_scales = group_size < kBlockColumns && full
+    const bool two_groups = group_size < kBlockColumns && (full || tail_columns > kBlockColumns / 2);
+    const __m256 weight_scales = two_groups
                                      ? _mm256_setr_m128(_mm_set1_ps(block_scales[0]), _mm_set1_ps(block_scales[1]))
                                      : _mm256_set1_ps(block_scales[0]);
     for (int r = 0; r < kRows; ++r) {
@@ -153,11 +171,20 @@ void fp32_row_kernel(const uint8_t* weight_row, const float* scales_row, int64_t
   const __m256i eight = _mm256_set1_epi32(8);
   __m256 acc[kRows];
   for (int r = 0; r < kRows; ++r) acc[r] = _mm256_setzero_ps();
-  for (int64_t g = 0; g < k / group_size; ++g) {
+  for (int64_t g = 0; g < group_count(k, group_size); ++g) {
     __m256 group_acc[kRows];
     for (int r = 0; r < kRows; ++r) group_acc[r] = _mm256_setzero_ps();
-    for (int64_t c = g * group_size; c < (g + 1) * group_size; c += kChunkColumns) {
-      const __m256i bytes = _mm256_cvtepu8_epi32(_mm_loadl_epi64(reinterpret_cast<const __m128i*>(weight_row + c / 2)));
+    const int64_t group_end = std::min<int64_t>((g + 1) * group_size, k);
+    for (int64_t c = g * group_size; c < group_end; c += kChunkColumns) {
+      __m128i packed;
+      if (c + kChunkColumns <= k) {
+        packed = _mm_loadl_epi64(reinterpret_cast<const __m128i*>(weight_row + c / 2));
+      } else {  // the row's last, partial chunk: the bytes past k read as code 0
+        alignas(16) uint8_t tail[16] = {};
+        std::memcpy(tail, weight_row + c / 2, (k - c) / 2);
+        packed = _mm_load_si128(reinterpret_cast<const __m128i*>(tail));
+      }
+      const __m256i bytes = _mm256_cvtepu8_epi32(packed);
       const __m256 even = _mm256_cvtepi32_ps(
           _mm256_sub_epi32(_mm256_xor_si256(_mm256_and_si256(bytes, low_nibble), eight), eight));
       const __m256 odd = _mm256_cvtepi32_ps(_mm256_sub_epi32(_mm256_xor_si256(_mm256_srli_epi32(bytes, 4), eight), eight));
@@ -188,8 +215,9 @@ void gemm_typed(const Element* x, const uint8_t* qweight, const float* scales, c
         });
   } else {
     const std::vector<float> activations = deinterleave_activations(x, m, k);
+    const int64_t pitch = chunk_padded(k);
     run_tiles<kMaxTileRows>(
-        qweight, scales, bias, m, n, k, group_size, out, [&](int64_t r) { return activations.data() + r * k; },
+        qweight, scales, bias, m, n, k, group_size, out, [&](int64_t r) { return activations.data() + r * pitch; },
         [&](auto tile_rows, const uint8_t* weight_row, const float* scales_row, const float* const* rows, float* sums) {
           fp32_row_kernel<decltype(tile_rows)::value>(weight_row, scales_row, k, group_size, rows, sums);
         });

@@ -11,6 +11,10 @@
 // - act_bits 16: 16 packed bytes (32 columns) are widened to int32 lanes and mapped nibble -> fp32 code
 //   with a 16-entry permute; x is stored as even/odd halves per 32 columns to match, and each group's
 //   fp32 partial sum is scaled by s_w once.
+// K need only be even: the row kernels mask the tail of each row (weight bytes past K load as 0, so the
+// last group, which holds the remainder when G does not divide K, gets only its own columns), and the
+// panel path runs on copies of x and the weights zero-padded to whole groups, which quantize and sum to
+// the same numbers (zeros change neither a group's range nor its sums; docs/numerics.md, section 4).
 #pragma once
 
 #include <algorithm>
@@ -75,7 +79,7 @@ std::vector<QuantizedBlock> quantize_activation_blocks(const Element* x, int64_t
   parallel_for(0, m, 4, [&](int64_t row_begin, int64_t row_end) {
     std::vector<float> row(k);
     std::vector<uint8_t> codes(blocks * kBlockColumns, 0);
-    std::vector<ActivationGroupParams> params(k / group_size);
+    std::vector<ActivationGroupParams> params(group_count(k, group_size));
     const __m512i even = even_byte_indices();
     const __m512i odd = _mm512_add_epi8(even, _mm512_set1_epi8(1));
     for (int64_t r = row_begin; r < row_end; ++r) {
@@ -98,21 +102,26 @@ std::vector<QuantizedBlock> quantize_activation_blocks(const Element* x, int64_t
   return quantized;
 }
 
-// act_bits 16: x in fp32, each 32 columns stored as the 16 even then the 16 odd ones.
+// Columns rounded up to whole 32-column chunks: the row pitch of the act_bits 16 operand.
+inline int64_t chunk_padded(int64_t k) { return (k + kChunkColumns - 1) / kChunkColumns * kChunkColumns; }
+
+// act_bits 16: x in fp32, each 32 columns stored as the 16 even then the 16 odd ones; rows of
+// chunk_padded(k) values, zero past k.
 template <typename Element>
 std::vector<float> deinterleave_activations(const Element* x, int64_t m, int64_t k) {
-  std::vector<float> deinterleaved(m * k);
+  const int64_t pitch = chunk_padded(k);
+  std::vector<float> deinterleaved(m * pitch);
   parallel_for(0, m, 4, [&](int64_t row_begin, int64_t row_end) {
-    std::vector<float> row(k);
+    std::vector<float> row(pitch, 0.0f);
     const __m512i even = _mm512_set_epi32(30, 28, 26, 24, 22, 20, 18, 16, 14, 12, 10, 8, 6, 4, 2, 0);
     const __m512i odd = _mm512_add_epi32(even, _mm512_set1_epi32(1));
     for (int64_t r = row_begin; r < row_end; ++r) {
       load_row_fp32(x + r * k, k, row.data());
-      for (int64_t c = 0; c < k; c += kChunkColumns) {
+      for (int64_t c = 0; c < pitch; c += kChunkColumns) {
         const __m512 first = _mm512_loadu_ps(row.data() + c);
         const __m512 second = _mm512_loadu_ps(row.data() + c + 16);
-        _mm512_storeu_ps(&deinterleaved[r * k + c], _mm512_permutex2var_ps(first, even, second));
-        _mm512_storeu_ps(&deinterleaved[r * k + c + 16], _mm512_permutex2var_ps(first, odd, second));
+        _mm512_storeu_ps(&deinterleaved[r * pitch + c], _mm512_permutex2var_ps(first, even, second));
+        _mm512_storeu_ps(&deinterleaved[r * pitch + c + 16], _mm512_permutex2var_ps(first, odd, second));
       }
     }
   });
@@ -147,7 +156,8 @@ void quantized_row_kernel(const uint8_t* weight_row, const float* scales_row, in
   for (int64_t t = 0; t < blocks; ++t) {
     const bool full = t < full_blocks;
     const __mmask64 byte_mask = full ? ~__mmask64{0} : (__mmask64{1} << (tail_columns / 2)) - 1;
-    const __mmask16 scale_mask = full ? (1u << groups_per_block) - 1 : (1u << (tail_columns / group_size)) - 1;
+    const __mmask16 scale_mask =
+        full ? (1u << groups_per_block) - 1 : (1u << group_count(tail_columns, group_size)) - 1;
     __m512i even, odd;
     split_weight_nibbles(_mm512_maskz_loadu_epi8(byte_mask, weight_row + t * (kBlockColumns / 2)), even, odd);
     const __m512 weight_sums = cvtepi32_ps(
@@ -173,11 +183,20 @@ void fp32_row_kernel(const uint8_t* weight_row, const float* scales_row, int64_t
   const __m512 code_values = _mm512_setr_ps(0, 1, 2, 3, 4, 5, 6, 7, -8, -7, -6, -5, -4, -3, -2, -1);
   __m512 acc[kRows];
   for (int r = 0; r < kRows; ++r) acc[r] = _mm512_setzero_ps();
-  for (int64_t g = 0; g < k / group_size; ++g) {
+  for (int64_t g = 0; g < group_count(k, group_size); ++g) {
     __m512 group_acc[kRows];
     for (int r = 0; r < kRows; ++r) group_acc[r] = _mm512_setzero_ps();
-    for (int64_t c = g * group_size; c < (g + 1) * group_size; c += kChunkColumns) {
-      const __m512i bytes = cvtepu8_epi32(_mm_loadu_si128(reinterpret_cast<const __m128i*>(weight_row + c / 2)));
+    const int64_t group_end = std::min<int64_t>((g + 1) * group_size, k);
+    for (int64_t c = g * group_size; c < group_end; c += kChunkColumns) {
+      __m128i packed;
+      if (c + kChunkColumns <= k) {
+        packed = _mm_loadu_si128(reinterpret_cast<const __m128i*>(weight_row + c / 2));
+      } else {  // the row's last, partial chunk: the bytes past k read as code 0
+        alignas(16) uint8_t tail[16] = {};
+        std::memcpy(tail, weight_row + c / 2, (k - c) / 2);
+        packed = _mm_load_si128(reinterpret_cast<const __m128i*>(tail));
+      }
+      const __m512i bytes = cvtepu8_epi32(packed);
       // vpermps reads only the low 4 bits of each index: the low nibble, then the high one shifted down.
       const __m512 even = permutexvar_ps(bytes, code_values);
       const __m512 odd = permutexvar_ps(srli_epi32(bytes, 4), code_values);
@@ -428,9 +447,32 @@ void run_panels(const PanelActivations<kQuantized>& activations, const uint8_t* 
 
 template <int kBits, typename Element>
 void gemm_typed(const Element* x, const uint8_t* qweight, const float* scales, const Element* bias, int64_t m, int64_t n,
-          int64_t k, int group_size, Element* out) {
+                int64_t k, int group_size, Element* out);
+
+// The panel path for a k that group_size does not divide: x and the weights copied with zero columns up
+// to whole groups (the scales already have one entry per group, the last one for the remainder).
+template <int kBits, typename Element>
+void gemm_panels_padded(const Element* x, const uint8_t* qweight, const float* scales, const Element* bias, int64_t m,
+                        int64_t n, int64_t k, int group_size, Element* out) {
+  const int64_t padded = group_count(k, group_size) * group_size;
+  std::vector<Element> x_padded(m * padded, Element(0.0f));
+  std::vector<uint8_t> qweight_padded(n * padded / 2, 0);
+  parallel_for(0, std::max(m, n), 16, [&](int64_t begin, int64_t end) {
+    for (int64_t r = begin; r < end; ++r) {
+      if (r < m) std::memcpy(x_padded.data() + r * padded, x + r * k, k * sizeof(Element));
+      if (r < n) std::memcpy(qweight_padded.data() + r * padded / 2, qweight + r * k / 2, k / 2);
+    }
+  });
+  gemm_typed<kBits>(x_padded.data(), qweight_padded.data(), scales, bias, m, n, padded, group_size, out);
+}
+
+template <int kBits, typename Element>
+void gemm_typed(const Element* x, const uint8_t* qweight, const float* scales, const Element* bias, int64_t m, int64_t n,
+                int64_t k, int group_size, Element* out) {
   constexpr bool kQuantized = ActivationTraits<kBits>::kQuantized;
-  if (m >= kPanelMinRows) {
+  if (m >= kPanelMinRows && k % group_size != 0) {
+    gemm_panels_padded<kBits>(x, qweight, scales, bias, m, n, k, group_size, out);
+  } else if (m >= kPanelMinRows) {
     if constexpr (kQuantized) {
       run_panels(quantize_panel_activations(x, m, k, group_size, kBits), qweight, scales, bias, m, n, k, group_size,
                  out);
@@ -448,8 +490,9 @@ void gemm_typed(const Element* x, const uint8_t* qweight, const float* scales, c
         });
   } else {
     const std::vector<float> activations = deinterleave_activations(x, m, k);
+    const int64_t pitch = chunk_padded(k);
     run_tiles<kMaxTileRows>(
-        qweight, scales, bias, m, n, k, group_size, out, [&](int64_t r) { return activations.data() + r * k; },
+        qweight, scales, bias, m, n, k, group_size, out, [&](int64_t r) { return activations.data() + r * pitch; },
         [&](auto tile_rows, const uint8_t* weight_row, const float* scales_row, const float* const* rows, float* sums) {
           fp32_row_kernel<decltype(tile_rows)::value>(weight_row, scales_row, k, group_size, rows, sums);
         });

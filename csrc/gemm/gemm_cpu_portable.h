@@ -24,7 +24,7 @@ constexpr int64_t kPortableRowsPerTask = 64;
 // s_x, or at the fallback width the fp32 copy of x.
 struct PortableActivations {
   RowMajorMatrix values;  // [m, k]
-  RowMajorMatrix scales;  // [m, k / group_size]; empty at the fallback width
+  RowMajorMatrix scales;  // [m, groups]; empty at the fallback width
 };
 
 template <int kBits, typename Element>
@@ -36,17 +36,18 @@ PortableActivations prepare_portable_activations(const Element* x, int64_t m, in
       for (int64_t row = row_begin; row < row_end; ++row) load_row_fp32(x + row * k, k, &prepared.values(row, 0));
     });
   } else {
-    prepared.scales.resize(m, k / group_size);
+    const int64_t groups = group_count(k, group_size);
+    prepared.scales.resize(m, groups);
     parallel_for(0, m, 4, [&](int64_t row_begin, int64_t row_end) {
       std::vector<float> row_fp32(k);
       std::vector<uint8_t> codes(k);
-      std::vector<ActivationGroupParams> params(k / group_size);
+      std::vector<ActivationGroupParams> params(groups);
       for (int64_t row = row_begin; row < row_end; ++row) {
         quantize_activation_row(x + row * k, k, group_size, kBits, row_fp32.data(), codes.data(), params.data());
         for (int64_t col = 0; col < k; ++col) {
           prepared.values(row, col) = static_cast<float>(int{codes[col]} - params[col / group_size].zero);
         }
-        for (int64_t g = 0; g < k / group_size; ++g) prepared.scales(row, g) = params[g].scale;
+        for (int64_t g = 0; g < groups; ++g) prepared.scales(row, g) = params[g].scale;
       }
     });
   }
@@ -57,7 +58,7 @@ template <int kBits, typename Element>
 void gemm_typed(const Element* x, const uint8_t* qweight, const float* scales, const Element* bias,
                          int64_t m, int64_t n, int64_t k, int group_size, Element* out) {
   const PortableActivations activations = prepare_portable_activations<kBits>(x, m, k, group_size);
-  const int64_t groups = k / group_size;
+  const int64_t groups = group_count(k, group_size);
   const int64_t tasks = (n + kPortableRowsPerTask - 1) / kPortableRowsPerTask;
   parallel_for(0, tasks, 1, [&](int64_t task_begin, int64_t task_end) {
     RowMajorMatrix weight_codes;  // [rows, group_size], integer-valued
@@ -67,19 +68,20 @@ void gemm_typed(const Element* x, const uint8_t* qweight, const float* scales, c
     for (int64_t task = task_begin; task < task_end; ++task) {
       const int64_t row_begin = task * kPortableRowsPerTask;
       const int64_t rows = std::min(kPortableRowsPerTask, n - row_begin);
-      weight_codes.resize(rows, group_size);
       weight_scales.resize(rows);
       accumulator.setZero(m, rows);
       for (int64_t g = 0; g < groups; ++g) {
+        const int64_t columns = group_columns(k, group_size, g);  // the remainder in the last group
+        weight_codes.resize(rows, columns);
         for (int64_t r = 0; r < rows; ++r) {
           const uint8_t* packed = qweight + ((row_begin + r) * k + g * group_size) / 2;
-          for (int i = 0; i < group_size / 2; ++i) {
+          for (int64_t i = 0; i < columns / 2; ++i) {
             weight_codes(r, 2 * i) = static_cast<float>(sign_extend_nibble(packed[i] & 0xFu));
             weight_codes(r, 2 * i + 1) = static_cast<float>(sign_extend_nibble(packed[i] >> 4));
           }
           weight_scales(r) = scales[(row_begin + r) * groups + g];
         }
-        partial.noalias() = activations.values.middleCols(g * group_size, group_size) * weight_codes.transpose();
+        partial.noalias() = activations.values.middleCols(g * group_size, columns) * weight_codes.transpose();
         if constexpr (!ActivationTraits<kBits>::kQuantized) {
           accumulator.noalias() += partial * weight_scales.asDiagonal();
         } else {

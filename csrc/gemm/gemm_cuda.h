@@ -15,9 +15,9 @@ struct GemmArgs {
   const void* x;            // [m, k] row-major, `dtype`, 16-byte aligned
   ScalarType dtype;         // of x, bias and out
   const uint8_t* qweight;   // [n, k/2], canonical packed INT4, 16-byte aligned
-  const float* scales;      // [n, k/group_size]
+  const float* scales;      // [n, ceil(k/group_size)]: the last group holds the remainder
   const void* bias;         // [n] or null
-  int64_t m, n, k;          // k % group_size == 0 (so k % 32 == 0)
+  int64_t m, n, k;          // k % 32 == 0 (16-byte rows of packed weights); group_size need not divide k
   int group_size;           // 32, 64 or 128
   Precision precision;      // act_bits (2, 4, 8, 16), fixed or read on the device
   void* workspace;          // gemm_workspace_bytes(m, k, group_size) bytes, 256-byte aligned

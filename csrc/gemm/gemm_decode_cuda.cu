@@ -68,7 +68,7 @@ __global__ void __launch_bounds__(kThreads) gemm_decode_kernel(const GemmArgs a)
   const int group_size = a.group_size;
   const int group_shift = 31 - __clz(group_size);  // G is a power of two: no integer division
   const int group_lanes = group_size / 8;
-  const int64_t groups_per_row = k >> group_shift;
+  const int64_t groups_per_row = (k + group_size - 1) >> group_shift;  // the last group may be partial
   const int64_t first_row = static_cast<int64_t>(blockIdx.x) * kRowsPerBlock + warp * kRowsPerWarp;
   const int64_t element_bytes = a.dtype == ScalarType::kFloat32 ? 4 : 2;
 
@@ -108,7 +108,8 @@ __global__ void __launch_bounds__(kThreads) gemm_decode_kernel(const GemmArgs a)
 
   float acc[kRowsPerWarp][kRows] = {};
   for (int64_t chunk_start = 0; chunk_start < k; chunk_start += kChunk) {
-    // A multiple of the group size: the chunk holds whole groups.
+    // A multiple of 32; chunks start at group boundaries, so only the last group of a row can be partial,
+    // and its columns past k stage as zeros (which change neither its range nor its sums).
     const int chunk_valid = static_cast<int>(k - chunk_start < kChunk ? k - chunk_start : kChunk);
     if (chunk_start > 0) load_weights(chunk_start);
 

@@ -177,7 +177,7 @@ __device__ void prefill_block(const GemmArgs& a, const PreparedActivations& prep
   const int64_t k = a.k;
   const int group_size = a.group_size;
   const int group_shift = 31 - __clz(group_size);  // G is a power of two: no integer division
-  const int64_t groups_per_row = k >> group_shift;
+  const int64_t groups_per_row = (k + group_size - 1) >> group_shift;  // the last group may be partial
 
   const uint8_t* a_src = prepared.codes;
   int64_t a_pitch = prepared_row_bytes(k, kBits);
@@ -346,7 +346,8 @@ __device__ void prefill_block(const GemmArgs& a, const PreparedActivations& prep
     cp_async_wait<1>();  // every group but the one just committed has landed: this tile is in place
     __syncthreads();
     const int stage = static_cast<int>(tile % 2);
-    // Valid columns are a multiple of G, and G of the step: a step never crosses a group or the end of K.
+    // Valid columns are a multiple of the step (k % 32 == 0, and k % 64 == 0 for k64 steps) and G of the
+    // step: a step never crosses a group or the end of K. The last group ends at K, maybe short of G.
     const int valid_steps = static_cast<int>((k - tile_k < Shape::kTileK ? k - tile_k : Shape::kTileK) / Shape::kStepK);
 #pragma unroll
     for (int step = 0; step < kStepsPerTile; ++step) {
@@ -354,7 +355,7 @@ __device__ void prefill_block(const GemmArgs& a, const PreparedActivations& prep
         const int64_t step_k = tile_k + step * Shape::kStepK;
         if ((step_k & (group_size - 1)) == 0) load_group_scales(step_k >> group_shift);
         mma_step(stage, step * Shape::kStepK);
-        if (((step_k + Shape::kStepK) & (group_size - 1)) == 0) flush_group();
+        if (((step_k + Shape::kStepK) & (group_size - 1)) == 0 || step_k + Shape::kStepK == k) flush_group();
       }
     }
     __syncthreads();  // the next iteration's copy overwrites this stage
@@ -383,8 +384,8 @@ __device__ void prefill_block_for_width(const GemmArgs& a, const PreparedActivat
   using Traits = ActivationTraits<kBits>;
   constexpr MmaKind kMma = has_int4_tensor_cores() ? Traits::kMmaWithInt4Cores : Traits::kMmaWithoutInt4Cores;
   if constexpr (kMma == MmaKind::kU4S4) {
-    // A k64 step must stay inside one group.
-    if (a.group_size >= 64) {
+    // A k64 step must stay inside one group and inside K.
+    if (a.group_size >= 64 && a.k % 64 == 0) {
       prefill_block<kBits, MmaKind::kU4S4>(a, prepared, smem);
       return;
     }
@@ -418,8 +419,8 @@ int64_t align_up(int64_t bytes) { return (bytes + kWorkspaceAlign - 1) / kWorksp
 // Workspace: [bits_used | codes (m rows of up to 2k bytes) | scales | zeros], each 256-byte aligned.
 PreparedActivations workspace_layout(void* workspace, int64_t m, int64_t k, int group_size, int64_t* total_bytes) {
   const int64_t code_bytes = align_up(m * prepared_row_bytes(k, kFallbackBits));
-  const int64_t scale_bytes = align_up(m * (k / group_size) * 4);
-  const int64_t zero_bytes = align_up(m * (k / group_size));
+  const int64_t scale_bytes = align_up(m * group_count(k, group_size) * 4);
+  const int64_t zero_bytes = align_up(m * group_count(k, group_size));
   uint8_t* base = static_cast<uint8_t*>(workspace);
   if (total_bytes != nullptr) *total_bytes = kWorkspaceAlign + code_bytes + scale_bytes + zero_bytes;
   return PreparedActivations{reinterpret_cast<int32_t*>(base), base + kWorkspaceAlign,

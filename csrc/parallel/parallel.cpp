@@ -4,6 +4,7 @@
 #include <algorithm>
 #include <atomic>
 #include <condition_variable>
+#include <exception>
 #include <mutex>
 #include <thread>
 #include <vector>
@@ -39,9 +40,11 @@ class WorkerPool {
   int size() const { return static_cast<int>(threads_.size()); }
 
   // Runs task(c) once for every c in [0, chunks); the caller works too and returns when all are done.
+  // An exception thrown by a task (std::bad_alloc in a worker, say) stops the chunks not yet started and
+  // is rethrown here, in the calling thread, once every worker has left the job.
   void run(int64_t chunks, const std::function<void(int64_t)>& task) {
     std::lock_guard<std::mutex> one_job_at_a_time(run_mutex_);
-    Job job{&task, chunks};
+    Job job(&task, chunks);
     {
       std::lock_guard<std::mutex> lock(mutex_);
       job_ = &job;
@@ -52,19 +55,31 @@ class WorkerPool {
     std::unique_lock<std::mutex> lock(mutex_);
     job_ = nullptr;  // late workers no longer join; wait for those that did
     done_.wait(lock, [&] { return job.active == 0; });
+    if (job.error) std::rethrow_exception(job.error);
   }
 
  private:
   struct Job {
+    Job(const std::function<void(int64_t)>* task_, int64_t chunks_) : task(task_), chunks(chunks_) {}
     const std::function<void(int64_t)>* task;
     int64_t chunks;
     std::atomic<int64_t> next{0};
     int active = 0;  // workers inside drain(); guarded by mutex_
+    std::mutex error_mutex;
+    std::exception_ptr error;  // the first exception a task threw
   };
 
   static void drain(Job& job) {
     t_inside_parallel_region = true;
-    for (int64_t c; (c = job.next.fetch_add(1, std::memory_order_relaxed)) < job.chunks;) (*job.task)(c);
+    for (int64_t c; (c = job.next.fetch_add(1, std::memory_order_relaxed)) < job.chunks;) {
+      try {
+        (*job.task)(c);
+      } catch (...) {
+        std::lock_guard<std::mutex> lock(job.error_mutex);
+        if (!job.error) job.error = std::current_exception();
+        job.next.store(job.chunks, std::memory_order_relaxed);  // start no further chunk
+      }
+    }
     t_inside_parallel_region = false;
   }
 

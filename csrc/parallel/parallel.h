@@ -15,7 +15,8 @@ namespace dyq {
 using RangeBody = std::function<void(int64_t begin, int64_t end)>;
 using ParallelForBackend = void (*)(int64_t begin, int64_t end, int64_t grain_size, const RangeBody& body);
 
-// Runs body over [begin, end) in chunks of at least grain_size, possibly in parallel.
+// Runs body over [begin, end) in chunks of at least grain_size, possibly in parallel. An exception thrown by
+// body in any thread is rethrown to the caller after every chunk in flight has finished.
 void parallel_for(int64_t begin, int64_t end, int64_t grain_size, const RangeBody& body);
 
 // Replaces the default pool (for tests and embedders); nullptr restores it.

@@ -1,9 +1,15 @@
-// Argument checks shared by the CPU and CUDA registrations: every misuse is a clear error that names
-// the argument and what was expected (docs/numerics.md, section 4).
+// The argument checks of every dyq operator, the one validation that the CPU and CUDA registrations
+// and the fake (meta) kernels all run (python/dyq/core/ops.py calls them through dyq._C): every misuse is
+// a clear error that names the argument and what was expected (docs/numerics.md, section 4).
+//
+// Shapes are read as SymInts, so that the fake kernels can validate tensors with symbolic sizes under
+// torch.compile; a comparison guards on them as an `if` in Python would. Every check raises
+// RuntimeError (c10::Error), as the ops always have.
 #pragma once
 
 #include <ATen/core/Tensor.h>
 #include <ATen/ops/empty.h>
+#include <c10/core/SymInt.h>
 #include <c10/util/Exception.h>
 
 #include <optional>
@@ -50,90 +56,142 @@ inline std::string registered_act_bits_text(bool quantized_only = false) {
 
 inline void check_group_size(int64_t group_size) {
   TORCH_CHECK(is_valid_group_size(group_size), "dyq: group_size must be ", spelled_out(RegisteredGroupSizes()),
-              ", got ", group_size);
+                    ", got ", group_size);
 }
 
 // allow_fallback = false: only the quantized widths (the standalone activation quantizer).
 inline void check_act_bits(int64_t act_bits, bool allow_fallback = true) {
-  TORCH_CHECK(is_valid_act_bits(act_bits) && (allow_fallback || act_bits != kFallbackBits), "dyq: act_bits must be ",
-              registered_act_bits_text(!allow_fallback), ", got ", act_bits);
+  TORCH_CHECK(is_valid_act_bits(act_bits) && (allow_fallback || act_bits != kFallbackBits),
+                    "dyq: act_bits must be ", registered_act_bits_text(!allow_fallback), ", got ", act_bits);
 }
 
-inline void check_k_divisible(int64_t k, int64_t group_size, const char* what) {
-  TORCH_CHECK(k % group_size == 0, "dyq: ", what, " has K = ", k, " columns, which is not a multiple of group_size = ",
-              group_size);
+// Dense tensors only: sparse, quantized or MKL-DNN layouts have no data pointer the kernels can walk.
+inline void check_strided(const at::Tensor& t, const char* name) {
+  TORCH_CHECK(t.layout() == at::kStrided, "dyq: ", name, " must be a dense (strided) tensor, got layout ", t.layout());
+}
+
+inline void check_same_device(const at::Tensor& t, const char* name, const at::Device& device) {
+  TORCH_CHECK(t.device() == device, "dyq: ", name, " is on ", t.device(), " but x is on ", device,
+              "; every tensor of one call must be on the same device");
 }
 
 inline void check_activation(const at::Tensor& x, const char* name) {
+  check_strided(x, name);
   TORCH_CHECK(is_activation_dtype(x.scalar_type()), "dyq: ", name, " must be float32, bfloat16 or float16, got ",
-              x.scalar_type());
+                   x.scalar_type());
   TORCH_CHECK(x.dim() >= 1, "dyq: ", name, " must have at least one dimension (..., K), got a scalar");
 }
 
-// qweight uint8 [N, K/2] and scales fp32 [N, K/G], dense, on the device of `x`.
+// Groups of K columns: ceil(K / G), the last holding the remainder (common/format.h).
+inline c10::SymInt group_count(const c10::SymInt& k, int64_t group_size) { return (k + (group_size - 1)) / group_size; }
+
+// qweight uint8 [N, K/2] and scales fp32 [N, ceil(K/G)], dense, on `device`.
 inline void check_packed_weight(const at::Tensor& qweight, const at::Tensor& scales, int64_t group_size,
                                 const at::Device& device) {
+  check_strided(qweight, "qweight");
+  check_strided(scales, "scales");
   TORCH_CHECK(qweight.scalar_type() == at::kByte, "dyq: qweight must be uint8 (two INT4 codes per byte), got ",
-              qweight.scalar_type());
-  TORCH_CHECK(qweight.dim() == 2, "dyq: qweight must have shape [N, K/2], got ", qweight.sizes());
+                   qweight.scalar_type());
+  TORCH_CHECK(qweight.dim() == 2, "dyq: qweight must have shape [N, K/2], got ", qweight.sym_sizes());
   TORCH_CHECK(qweight.is_contiguous(), "dyq: qweight must be contiguous (packed data is dense)");
   TORCH_CHECK(scales.scalar_type() == at::kFloat, "dyq: scales must be float32, got ", scales.scalar_type());
   TORCH_CHECK(scales.is_contiguous(), "dyq: scales must be contiguous");
-  const int64_t k = qweight.size(1) * 2;
-  check_k_divisible(k, group_size, "qweight");
-  TORCH_CHECK(scales.dim() == 2 && scales.size(0) == qweight.size(0) && scales.size(1) == k / group_size,
-              "dyq: scales must have shape [N, K/group_size] = [", qweight.size(0), ", ", k / group_size, "], got ",
-              scales.sizes());
-  TORCH_CHECK(qweight.device() == device, "dyq: qweight is on ", qweight.device(), " but x is on ", device);
-  TORCH_CHECK(scales.device() == device, "dyq: scales is on ", scales.device(), " but x is on ", device);
+  const c10::SymInt k = qweight.sym_size(1) * 2;
+  const c10::SymInt groups = group_count(k, group_size);
+  TORCH_CHECK(scales.dim() == 2 && scales.sym_size(0) == qweight.sym_size(0) && scales.sym_size(1) == groups,
+                    "dyq: scales must have shape [N, ceil(K/group_size)] = [", qweight.sym_size(0), ", ", groups,
+                    "] for qweight of shape ", qweight.sym_sizes(), " and group_size = ", group_size, ", got ",
+                    scales.sym_sizes());
+  check_same_device(qweight, "qweight", device);
+  check_same_device(scales, "scales", device);
 }
 
+// The precision flag of gemm_with_flag: one int32. Its device is the backend's to check (the CPU reads a
+// CPU tensor; CUDA kernels read pinned host memory or device memory).
+inline void check_flag_tensor(const at::Tensor& flag) {
+  check_strided(flag, "act_bits_flag");
+  TORCH_CHECK(flag.scalar_type() == at::kInt, "dyq: act_bits_flag must be an int32 tensor, got ",
+                   flag.scalar_type());
+  TORCH_CHECK(flag.sym_numel() == 1, "dyq: act_bits_flag must hold exactly one element, got ",
+                    flag.sym_numel());
+}
+
+// gemm and gemm_with_flag: x [..., K], the packed weight, an optional bias [N] of x's dtype, all on x's
+// device; then a registered act_bits (gemm) or a valid flag tensor (gemm_with_flag, whose value only the
+// backend can read).
 inline void check_gemm_args(const at::Tensor& x, const at::Tensor& qweight, const at::Tensor& scales,
                             int64_t group_size, const std::optional<at::Tensor>& bias) {
   check_group_size(group_size);
   check_activation(x, "x");
   check_packed_weight(qweight, scales, group_size, x.device());
-  const int64_t k = qweight.size(1) * 2;
-  TORCH_CHECK(x.size(-1) == k, "dyq: x has ", x.size(-1), " features (last dimension) but the weight expects K = ",
-              k);
+  const c10::SymInt k = qweight.sym_size(1) * 2;
+  TORCH_CHECK(x.sym_size(-1) == k, "dyq: x has ", x.sym_size(-1),
+                    " features (last dimension) but the weight expects K = ", k);
   if (bias.has_value()) {
+    check_strided(*bias, "bias");
     TORCH_CHECK(bias->scalar_type() == x.scalar_type(), "dyq: bias must have the dtype of x (", x.scalar_type(),
-                "), got ", bias->scalar_type());
-    TORCH_CHECK(bias->dim() == 1 && bias->size(0) == qweight.size(0), "dyq: bias must have shape [N] = [",
-                qweight.size(0), "], got ", bias->sizes());
-    TORCH_CHECK(bias->device() == x.device(), "dyq: bias is on ", bias->device(), " but x is on ", x.device());
+                     "), got ", bias->scalar_type());
+    TORCH_CHECK(bias->dim() == 1 && bias->sym_size(0) == qweight.sym_size(0), "dyq: bias must have shape [N] = [",
+                      qweight.sym_size(0), "], got ", bias->sym_sizes());
+    check_same_device(*bias, "bias", x.device());
   }
 }
 
-inline void check_flag_tensor(const at::Tensor& flag) {
-  TORCH_CHECK(flag.scalar_type() == at::kInt, "dyq: act_bits_flag must be an int32 tensor, got ",
-              flag.scalar_type());
-  TORCH_CHECK(flag.numel() == 1, "dyq: act_bits_flag must hold exactly one element, got ", flag.numel());
+inline void check_gemm(const at::Tensor& x, const at::Tensor& qweight, const at::Tensor& scales, int64_t group_size,
+                       int64_t act_bits, const std::optional<at::Tensor>& bias) {
+  check_gemm_args(x, qweight, scales, group_size, bias);
+  check_act_bits(act_bits);
+}
+
+inline void check_gemm_with_flag(const at::Tensor& x, const at::Tensor& qweight, const at::Tensor& scales,
+                                 int64_t group_size, const at::Tensor& flag, const std::optional<at::Tensor>& bias) {
+  check_gemm_args(x, qweight, scales, group_size, bias);
+  check_flag_tensor(flag);
+}
+
+// quantize_weight: a floating-point [N, K] with K even (two INT4 codes per byte).
+inline void check_quantize_weight(const at::Tensor& weight, int64_t group_size) {
+  check_group_size(group_size);
+  check_strided(weight, "weight");
+  TORCH_CHECK(weight.is_floating_point(), "dyq: weight must be a floating-point tensor, got ",
+                   weight.scalar_type());
+  TORCH_CHECK(weight.dim() == 2, "dyq: weight must have shape [N, K], got ", weight.sym_sizes());
+  TORCH_CHECK(weight.sym_size(1) % 2 == 0, "dyq: weight has K = ", weight.sym_size(1),
+                    " columns; K must be even (two INT4 codes per byte)");
+}
+
+inline void check_dequantize_weight(const at::Tensor& qweight, const at::Tensor& scales, int64_t group_size) {
+  check_group_size(group_size);
+  check_packed_weight(qweight, scales, group_size, qweight.device());
+}
+
+// quantize_activations: x [..., K] at a quantized width, with K * act_bits a multiple of 8 (whole bytes of
+// packed codes: K a multiple of 4 at 2 bits, of 2 at 4 bits).
+inline void check_quantize_activations(const at::Tensor& x, int64_t group_size, int64_t act_bits) {
+  check_group_size(group_size);
+  check_act_bits(act_bits, /*allow_fallback=*/false);
+  check_activation(x, "x");
+  TORCH_CHECK(x.sym_size(-1) * act_bits % 8 == 0, "dyq: x has K = ", x.sym_size(-1), " columns; at act_bits = ",
+                    act_bits, " K must be a multiple of ", 8 / act_bits, " (whole bytes of packed codes)");
 }
 
 // Checks quantize_weight's arguments; returns (N, K).
 inline std::pair<int64_t, int64_t> check_quantize_weight_args(const at::Tensor& weight, int64_t group_size) {
-  check_group_size(group_size);
-  TORCH_CHECK(weight.is_floating_point(), "dyq: weight must be a floating-point tensor, got ", weight.scalar_type());
-  TORCH_CHECK(weight.dim() == 2, "dyq: weight must have shape [N, K], got ", weight.sizes());
-  check_k_divisible(weight.size(1), group_size, "weight");
+  check_quantize_weight(weight, group_size);
   return {weight.size(0), weight.size(1)};
 }
 
 // Checks quantize_activations' arguments and allocates its outputs on x's device:
-// packed codes uint8 [..., K*b/8], scales fp32 [..., K/G], zero points uint8 [..., K/G].
+// packed codes uint8 [..., K*b/8], scales fp32 [..., groups], zero points uint8 [..., groups].
 inline std::tuple<at::Tensor, at::Tensor, at::Tensor> activation_quantization_outputs(const at::Tensor& x,
                                                                                       int64_t group_size,
                                                                                       int64_t act_bits) {
-  check_group_size(group_size);
-  check_act_bits(act_bits, /*allow_fallback=*/false);
-  check_activation(x, "x");
+  check_quantize_activations(x, group_size, act_bits);
   const int64_t k = x.size(-1);
-  check_k_divisible(k, group_size, "x");
   std::vector<int64_t> packed_shape(x.sizes().begin(), x.sizes().end());
   std::vector<int64_t> group_shape = packed_shape;
   packed_shape.back() = packed_activation_bytes(k, static_cast<int>(act_bits));
-  group_shape.back() = k / group_size;
+  group_shape.back() = dyq::group_count(k, group_size);
   return {at::empty(packed_shape, x.options().dtype(at::kByte)), at::empty(group_shape, x.options().dtype(at::kFloat)),
           at::empty(group_shape, x.options().dtype(at::kByte))};
 }

@@ -29,18 +29,18 @@ inline ActBitsSource flag_act_bits(const at::Tensor& flag) { return {0, &flag}; 
 //   static std::pair<Precision, int64_t> from_flag(flag, x);       checks the flag; the width to count
 //                                                                  (any unregistered value when the host
 //                                                                  cannot know it)
-//   static void run(x, qweight, scales, group_size, precision, bias, out);   out non-empty, K > 0
+//   static void run(x, qweight, scales, group_size, precision, bias, out);   out non-empty, K > 0; raises
+//                                                                  when the product is out of range
 template <typename Backend>
 at::Tensor gemm_op(const at::Tensor& x, const at::Tensor& qweight, const at::Tensor& scales, int64_t group_size,
                    const ActBitsSource& act_bits, const std::optional<at::Tensor>& bias) {
-  check_gemm_args(x, qweight, scales, group_size, bias);
   typename Backend::Precision precision;
   int64_t counted_bits = act_bits.fixed_bits;
   if (act_bits.flag != nullptr) {
-    check_flag_tensor(*act_bits.flag);
+    check_gemm_with_flag(x, qweight, scales, group_size, *act_bits.flag, bias);
     std::tie(precision, counted_bits) = Backend::from_flag(*act_bits.flag, x);
   } else {
-    check_act_bits(act_bits.fixed_bits);
+    check_gemm(x, qweight, scales, group_size, act_bits.fixed_bits, bias);
     precision = Backend::fixed(act_bits.fixed_bits);
   }
   count_gemm_call(counted_bits);

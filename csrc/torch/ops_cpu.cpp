@@ -4,6 +4,8 @@
 #include <ATen/ops/empty.h>
 #include <torch/library.h>
 
+#include <new>
+
 #include "activation/act_quant_cpu.h"
 #include "gemm/gemm_cpu.h"
 #include "parallel/parallel.h"
@@ -22,24 +24,39 @@ int torch_thread_count() { return at::get_num_threads(); }
   return true;
 }();
 
+// Runs a CPU kernel; an allocation failure inside it (in any worker thread: parallel_for rethrows it
+// here) becomes a Python exception that says what ran out, instead of escaping as std::bad_alloc.
+template <typename Kernel>
+bool with_cpu_errors(Kernel&& kernel) {
+  try {
+    return kernel();
+  } catch (const std::bad_alloc&) {
+    TORCH_CHECK(false, "dyq: out of memory in a CPU kernel (scratch buffers of the call could not be allocated)");
+  }
+}
+
 std::tuple<at::Tensor, at::Tensor> quantize_weight_cpu(const at::Tensor& weight, int64_t group_size) {
   const auto [n, k] = check_quantize_weight_args(weight, group_size);
   const at::Tensor w = weight.to(at::kFloat).contiguous();
   at::Tensor qweight = at::empty({n, k / 2}, weight.options().dtype(at::kByte));
-  at::Tensor scales = at::empty({n, k / group_size}, weight.options().dtype(at::kFloat));
-  const bool finite = cpu::quantize_weight(w.const_data_ptr<float>(), n, k, static_cast<int>(group_size),
-                                           qweight.mutable_data_ptr<uint8_t>(), scales.mutable_data_ptr<float>());
+  at::Tensor scales = at::empty({n, group_count(k, group_size)}, weight.options().dtype(at::kFloat));
+  const bool finite = with_cpu_errors([&] {
+    return cpu::quantize_weight(w.const_data_ptr<float>(), n, k, static_cast<int>(group_size),
+                                qweight.mutable_data_ptr<uint8_t>(), scales.mutable_data_ptr<float>());
+  });
   TORCH_CHECK(finite, "dyq: weight contains NaN or Inf; static INT4 weights must be finite");
   return {qweight, scales};
 }
 
 at::Tensor dequantize_weight_cpu(const at::Tensor& qweight, const at::Tensor& scales, int64_t group_size) {
-  check_group_size(group_size);
-  check_packed_weight(qweight, scales, group_size, qweight.device());
+  check_dequantize_weight(qweight, scales, group_size);
   const int64_t n = qweight.size(0), k = qweight.size(1) * 2;
   at::Tensor out = at::empty({n, k}, scales.options());
-  cpu::dequantize_weight(qweight.const_data_ptr<uint8_t>(), scales.const_data_ptr<float>(), n, k,
-                         static_cast<int>(group_size), out.mutable_data_ptr<float>());
+  with_cpu_errors([&] {
+    cpu::dequantize_weight(qweight.const_data_ptr<uint8_t>(), scales.const_data_ptr<float>(), n, k,
+                           static_cast<int>(group_size), out.mutable_data_ptr<float>());
+    return true;
+  });
   return out;
 }
 
@@ -50,9 +67,13 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> quantize_activations_cpu(const at
   const at::Tensor xc = x.contiguous();
   const int64_t m = k == 0 ? 0 : xc.numel() / k;
   if (m > 0) {
-    cpu::quantize_activations(xc.const_data_ptr(), to_dyq_dtype(x.scalar_type()), m, k, static_cast<int>(group_size),
-                              static_cast<int>(act_bits), packed.mutable_data_ptr<uint8_t>(),
-                              scales.mutable_data_ptr<float>(), zeros.mutable_data_ptr<uint8_t>());
+    with_cpu_errors([&] {
+      cpu::quantize_activations(xc.const_data_ptr(), to_dyq_dtype(x.scalar_type()), m, k,
+                                static_cast<int>(group_size), static_cast<int>(act_bits),
+                                packed.mutable_data_ptr<uint8_t>(), scales.mutable_data_ptr<float>(),
+                                zeros.mutable_data_ptr<uint8_t>());
+      return true;
+    });
   }
   return {packed, scales, zeros};
 }
@@ -76,9 +97,14 @@ struct CpuGemm {
     const int64_t n = qweight.size(0), k = qweight.size(1) * 2;
     const at::Tensor xc = x.contiguous();
     const at::Tensor bias_c = bias.has_value() ? bias->contiguous() : at::Tensor();
-    cpu::gemm(xc.const_data_ptr(), to_dyq_dtype(x.scalar_type()), qweight.const_data_ptr<uint8_t>(),
-              scales.const_data_ptr<float>(), bias_c.defined() ? bias_c.const_data_ptr() : nullptr, out.numel() / n,
-              n, k, static_cast<int>(group_size), static_cast<int>(act_bits), out.mutable_data_ptr());
+    const bool in_range = with_cpu_errors([&] {
+      return cpu::gemm(xc.const_data_ptr(), to_dyq_dtype(x.scalar_type()), qweight.const_data_ptr<uint8_t>(),
+                       scales.const_data_ptr<float>(), bias_c.defined() ? bias_c.const_data_ptr() : nullptr,
+                       out.numel() / n, n, k, static_cast<int>(group_size), static_cast<int>(act_bits),
+                       out.mutable_data_ptr());
+    });
+    TORCH_CHECK(in_range, "dyq: x W^T is out of the range of ", x.scalar_type(),
+                      " (finite inputs whose product overflows the output dtype)");
   }
 };
 

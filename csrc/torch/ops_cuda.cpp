@@ -28,16 +28,23 @@ at::Tensor aligned_contiguous(const at::Tensor& t) {
   return reinterpret_cast<uintptr_t>(c.const_data_ptr()) % 16 == 0 ? c : c.clone();
 }
 
+// The CUDA kernels move 16-byte vectors of packed weights (32 columns) and runs of 8 activations, so K
+// must be a multiple of 32 here (the CPU takes any even K); the group size need not divide it.
+void check_cuda_k(int64_t k, const char* name) {
+  TORCH_CHECK(k % 32 == 0, "dyq: ", name, " has K = ", k, " columns; CUDA kernels need K a multiple of 32");
+}
+
 void check_on_cuda(const at::Tensor& x, const char* name) {
   TORCH_CHECK(x.is_cuda(), "dyq: ", name, " must be a CUDA tensor here, got one on ", x.device());
 }
 
 std::tuple<at::Tensor, at::Tensor> quantize_weight_cuda(const at::Tensor& weight, int64_t group_size) {
   const auto [n, k] = check_quantize_weight_args(weight, group_size);
+  check_cuda_k(k, "weight");
   const c10::cuda::CUDAGuard guard(weight.device());
   const at::Tensor w = weight.to(at::kFloat).contiguous();
   at::Tensor qweight = at::empty({n, k / 2}, weight.options().dtype(at::kByte));
-  at::Tensor scales = at::empty({n, k / group_size}, weight.options().dtype(at::kFloat));
+  at::Tensor scales = at::empty({n, group_count(k, group_size)}, weight.options().dtype(at::kFloat));
   at::Tensor nonfinite = at::zeros({1}, weight.options().dtype(at::kInt));
   check_launch(cuda::quantize_weight(w.const_data_ptr<float>(), n, k, static_cast<int>(group_size),
                                      qweight.mutable_data_ptr<uint8_t>(), scales.mutable_data_ptr<float>(),
@@ -48,8 +55,7 @@ std::tuple<at::Tensor, at::Tensor> quantize_weight_cuda(const at::Tensor& weight
 }
 
 at::Tensor dequantize_weight_cuda(const at::Tensor& qweight, const at::Tensor& scales, int64_t group_size) {
-  check_group_size(group_size);
-  check_packed_weight(qweight, scales, group_size, qweight.device());
+  check_dequantize_weight(qweight, scales, group_size);
   const c10::cuda::CUDAGuard guard(qweight.device());
   const int64_t n = qweight.size(0), k = qweight.size(1) * 2;
   at::Tensor out = at::empty({n, k}, scales.options());
@@ -65,6 +71,7 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> quantize_activations_cuda(const a
   auto [packed, scales, zeros] = activation_quantization_outputs(x, group_size, act_bits);
   const c10::cuda::CUDAGuard guard(x.device());
   const int64_t k = x.size(-1);
+  check_cuda_k(k, "x");
   const at::Tensor xc = aligned_contiguous(x);
   const int64_t m = k == 0 ? 0 : xc.numel() / k;
   check_launch(cuda::quantize_activations(xc.const_data_ptr(), to_dyq_dtype(x.scalar_type()), m, k,
@@ -113,6 +120,7 @@ struct CudaGemm {
                   Precision precision, const std::optional<at::Tensor>& bias, at::Tensor& out) {
     const c10::cuda::CUDAGuard guard(x.device());
     const int64_t n = qweight.size(0), k = qweight.size(1) * 2, m = out.numel() / n;
+    check_cuda_k(k, "qweight");
     const at::Tensor xc = aligned_contiguous(x);
     const at::Tensor qweight_c = aligned_contiguous(qweight);
     const at::Tensor bias_c = bias.has_value() ? bias->contiguous() : at::Tensor();

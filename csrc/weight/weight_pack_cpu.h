@@ -5,7 +5,8 @@
 
 namespace dyq::cpu {
 
-// weight: fp32 [n, k] row-major. Writes qweight uint8 [n, k/2] and scales fp32 [n, k/group_size].
+// weight: fp32 [n, k] row-major, k even. Writes qweight uint8 [n, k/2] and scales fp32 [n, ceil(k/group_size)]
+// (the last group of a row holds the remainder).
 // Returns false (and writes nothing useful) if the weight holds NaN or Inf.
 bool quantize_weight(const float* weight, int64_t n, int64_t k, int group_size, uint8_t* qweight, float* scales);
 

@@ -1,5 +1,6 @@
 // One thread per (row, group) for quantization, one per packed byte for dequantization: these are
-// offline conversions, written for clarity.
+// offline conversions, written for clarity. The last group of a row holds the remainder when the group
+// size does not divide k.
 #include "common/cuda_utils.cuh"
 #include "weight/weight_pack_cuda.h"
 
@@ -11,13 +12,15 @@ constexpr int kThreads = 256;
 __global__ void __launch_bounds__(kThreads)
     quantize_weight_kernel(const float* weight, int64_t n, int64_t k, int group_size, uint8_t* qweight,
                            float* scales, int32_t* nonfinite) {
-  const int64_t groups_per_row = k / group_size;
+  const int64_t groups_per_row = group_count(k, group_size);
   const int64_t group = static_cast<int64_t>(blockIdx.x) * blockDim.x + threadIdx.x;
   if (group >= n * groups_per_row) return;
-  const float* w = weight + group * group_size;  // groups tile each row, rows are contiguous
+  const int64_t row = group / groups_per_row, g = group % groups_per_row;
+  const int64_t columns = group_columns(k, group_size, g);
+  const float* w = weight + row * k + g * group_size;
   float absmax = 0.0f;
   bool finite = true;
-  for (int i = 0; i < group_size; ++i) {
+  for (int64_t i = 0; i < columns; ++i) {
     finite = finite && isfinite(w[i]);
     absmax = fmaxf(absmax, fabsf(w[i]));
   }
@@ -25,8 +28,8 @@ __global__ void __launch_bounds__(kThreads)
   float scale = weight_scale_from_absmax(absmax);
   const bool empty = scale == 0.0f;
   if (empty) scale = 1.0f;
-  uint8_t* out = qweight + group * (group_size / 2);
-  for (int i = 0; i < group_size; i += 2) {
+  uint8_t* out = qweight + (row * k + g * group_size) / 2;
+  for (int64_t i = 0; i < columns; i += 2) {
     const int even = empty ? 0 : weight_code(w[i], scale);
     const int odd = empty ? 0 : weight_code(w[i + 1], scale);
     out[i / 2] = pack_weight_pair(even, odd);
@@ -41,7 +44,7 @@ __global__ void __launch_bounds__(kThreads)
   if (byte >= n * k / 2) return;
   const int64_t row = byte / (k / 2);
   const int64_t col = (byte % (k / 2)) * 2;
-  const float scale = scales[row * (k / group_size) + col / group_size];
+  const float scale = scales[row * group_count(k, group_size) + col / group_size];
   const uint32_t packed = qweight[byte];
   out[row * k + col] = scale * static_cast<float>(sign_extend_nibble(packed & 0xFu));
   out[row * k + col + 1] = scale * static_cast<float>(sign_extend_nibble(packed >> 4));
@@ -53,7 +56,7 @@ unsigned blocks_for(int64_t items) { return static_cast<unsigned>((items + kThre
 
 cudaError_t quantize_weight(const float* weight, int64_t n, int64_t k, int group_size, uint8_t* qweight,
                             float* scales, int32_t* nonfinite, cudaStream_t stream) {
-  const int64_t groups = n * (k / group_size);
+  const int64_t groups = n * group_count(k, group_size);
   if (groups == 0) return cudaSuccess;
   quantize_weight_kernel<<<blocks_for(groups), kThreads, 0, stream>>>(weight, n, k, group_size, qweight, scales,
                                                                       nonfinite);

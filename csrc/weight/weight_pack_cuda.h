@@ -8,7 +8,7 @@
 
 namespace dyq::cuda {
 
-// weight: fp32 [n, k] row-major. Writes qweight uint8 [n, k/2] and scales fp32 [n, k/group_size].
+// weight: fp32 [n, k] row-major, k even. Writes qweight uint8 [n, k/2] and scales fp32 [n, ceil(k/group_size)].
 // Sets *nonfinite (device int32, zeroed by the caller) to 1 if the weight holds NaN or Inf.
 cudaError_t quantize_weight(const float* weight, int64_t n, int64_t k, int group_size, uint8_t* qweight,
                             float* scales, int32_t* nonfinite, cudaStream_t stream);

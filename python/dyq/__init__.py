@@ -16,9 +16,19 @@ from .core import ops, reference
 from .core.cpu import cpu_info
 from .core.linear import DyQLinear
 from .core.precision import FALLBACK_BITS, GROUP_SIZES, VALID_BITS
-from .core.quantize import QuantizationReport, bind_flag, quantize_model, set_precision
+from .core.quantize import QuantizationReport, bind_flag, model_flag, quantize_model, set_precision
+from .core.serialization import load_quantized, save_quantized
 
 __version__ = "0.1.0"
+
+
+def __getattr__(name):
+    # The Hugging Face quantizer registers itself with transformers on first use (transformers is optional).
+    if name in ("DyQConfig", "DyQHfQuantizer"):
+        from .core import hf_quantizer
+
+        return getattr(hf_quantizer, name)
+    raise AttributeError(f"module 'dyq' has no attribute {name!r}")
 
 __all__ = [
     "DispatchConfig",
@@ -36,8 +46,11 @@ __all__ = [
     "VALID_BITS",
     "bind_flag",
     "cpu_info",
+    "load_quantized",
+    "model_flag",
     "ops",
     "quantize_model",
     "reference",
+    "save_quantized",
     "set_precision",
 ]

@@ -14,22 +14,28 @@ namespace naive {
 
 inline float rne(float v) { return std::nearbyint(v); }
 
+// Groups of a row: ceil(k / group_size); the last one holds the remainder when group_size does not divide k.
+inline int64_t groups_of(int64_t k, int group_size) { return (k + group_size - 1) / group_size; }
+inline int64_t columns_of(int64_t k, int group_size, int64_t g) { return std::min<int64_t>(group_size, k - g * group_size); }
+
 struct QuantizedWeight {
   std::vector<int> codes;     // [n, k], in [-8, 7]
-  std::vector<float> scales;  // [n, k / group_size]
+  std::vector<float> scales;  // [n, groups]
 };
 
 inline QuantizedWeight quantize_weight(const std::vector<float>& weight, int64_t n, int64_t k, int group_size) {
-  QuantizedWeight q{std::vector<int>(n * k), std::vector<float>(n * k / group_size)};
+  const int64_t groups = groups_of(k, group_size);
+  QuantizedWeight q{std::vector<int>(n * k), std::vector<float>(n * groups)};
   for (int64_t row = 0; row < n; ++row) {
-    for (int64_t g = 0; g < k / group_size; ++g) {
+    for (int64_t g = 0; g < groups; ++g) {
+      const int64_t columns = columns_of(k, group_size, g);
       float absmax = 0.0f;
-      for (int i = 0; i < group_size; ++i) absmax = std::max(absmax, std::abs(weight[row * k + g * group_size + i]));
+      for (int64_t i = 0; i < columns; ++i) absmax = std::max(absmax, std::abs(weight[row * k + g * group_size + i]));
       float scale = absmax / 7.0f;
       const bool empty = scale == 0.0f;
       if (empty) scale = 1.0f;
-      q.scales[row * (k / group_size) + g] = scale;
-      for (int i = 0; i < group_size; ++i) {
+      q.scales[row * groups + g] = scale;
+      for (int64_t i = 0; i < columns; ++i) {
         const int64_t at = row * k + g * group_size + i;
         q.codes[at] = empty ? 0 : static_cast<int>(std::clamp(rne(weight[at] / scale), -8.0f, 7.0f));
       }
@@ -49,21 +55,22 @@ inline std::vector<uint8_t> pack_weight(const std::vector<int>& codes) {
 
 struct QuantizedActivations {
   std::vector<int> codes;     // [m, k], in [0, 2^b - 1]
-  std::vector<float> scales;  // [m, k / group_size]
-  std::vector<int> zeros;     // [m, k / group_size]
+  std::vector<float> scales;  // [m, groups]
+  std::vector<int> zeros;     // [m, groups]
 };
 
 inline QuantizedActivations quantize_activations(const std::vector<float>& x, int64_t m, int64_t k, int group_size,
                                                  int act_bits) {
   const float levels = static_cast<float>((1 << act_bits) - 1);
-  const int64_t groups = k / group_size;
+  const int64_t groups = groups_of(k, group_size);
   QuantizedActivations q{std::vector<int>(m * k), std::vector<float>(m * groups), std::vector<int>(m * groups)};
   for (int64_t row = 0; row < m; ++row) {
     for (int64_t g = 0; g < groups; ++g) {
+      const int64_t columns = columns_of(k, group_size, g);
       const float* v = &x[row * k + g * group_size];
       bool finite = true;
       float lo = 0.0f, hi = 0.0f;
-      for (int i = 0; i < group_size; ++i) {
+      for (int64_t i = 0; i < columns; ++i) {
         if (!std::isfinite(v[i])) {
           finite = false;
           continue;
@@ -71,14 +78,15 @@ inline QuantizedActivations quantize_activations(const std::vector<float>& x, in
         lo = std::min(lo, v[i]);
         hi = std::max(hi, v[i]);
       }
-      float scale = (hi - lo) / levels;
+      // A range beyond FLT_MAX: both ends halved (exact), so the scale is the wide-exponent value.
+      float scale = std::isinf(hi - lo) ? ((0.5f * hi - 0.5f * lo) / levels) * 2.0f : (hi - lo) / levels;
       const bool empty = scale == 0.0f;
       if (empty) scale = 1.0f;
       int zero = static_cast<int>(std::clamp(rne(-lo / scale), 0.0f, levels));
       if (empty || !finite) zero = 0;
       q.scales[row * groups + g] = finite ? scale : NAN;
       q.zeros[row * groups + g] = zero;
-      for (int i = 0; i < group_size; ++i) {
+      for (int64_t i = 0; i < columns; ++i) {
         q.codes[row * k + g * group_size + i] =
             (empty || !finite) ? 0 : static_cast<int>(std::clamp(rne(v[i] / scale) + zero, 0.0f, levels));
       }
@@ -105,7 +113,7 @@ struct GemmReference {
 
 inline GemmReference gemm(const std::vector<float>& x, const QuantizedWeight& weight, const std::vector<float>& bias,
                           int64_t m, int64_t n, int64_t k, int group_size, int act_bits) {
-  const int64_t groups = k / group_size;
+  const int64_t groups = groups_of(k, group_size);
   GemmReference ref{std::vector<double>(m * n), std::vector<double>(m * n)};
   QuantizedActivations act;
   if (act_bits != 16) act = quantize_activations(x, m, k, group_size, act_bits);
@@ -114,7 +122,7 @@ inline GemmReference gemm(const std::vector<float>& x, const QuantizedWeight& we
       double value = 0.0, magnitude = 0.0;
       for (int64_t g = 0; g < groups; ++g) {
         double partial = 0.0, partial_magnitude = 0.0;
-        for (int i = 0; i < group_size; ++i) {
+        for (int64_t i = 0; i < columns_of(k, group_size, g); ++i) {
           const int64_t kk = g * group_size + i;
           const double a = act_bits == 16 ? double{x[row * k + kk]}
                                           : double(act.codes[row * k + kk] - act.zeros[row * groups + g]);

@@ -3,6 +3,8 @@
 
 #include <atomic>
 #include <mutex>
+#include <new>
+#include <stdexcept>
 #include <thread>
 #include <utility>
 #include <vector>
@@ -116,4 +118,26 @@ TEST(ParallelForPool, ConcurrentCallersEachCoverTheirRange) {
     });
   }
   for (auto& caller : callers) caller.join();
+}
+
+TEST(ParallelForPool, ExceptionInAWorkerReachesTheCaller) {
+  dyq::set_parallel_backend(nullptr);
+  for (int repeat = 0; repeat < 50; ++repeat) {
+    std::atomic<int> calls{0};
+    EXPECT_THROW(dyq::parallel_for(0, 1000, 1,
+                                   [&](int64_t begin, int64_t) {
+                                     ++calls;
+                                     if (begin > 0) throw std::bad_alloc();  // a chunk that is not the first
+                                   }),
+                 std::bad_alloc);
+  }
+  // The pool still works afterwards.
+  run_and_check(0, 997, 1, true);
+}
+
+TEST(ParallelForPool, ExceptionInTheCallersChunkReachesTheCaller) {
+  dyq::set_parallel_backend(nullptr);
+  EXPECT_THROW(dyq::parallel_for(0, 1000, 1, [](int64_t, int64_t) { throw std::runtime_error("every chunk"); }),
+               std::runtime_error);
+  run_and_check(0, 997, 1, true);
 }

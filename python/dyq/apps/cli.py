@@ -11,8 +11,9 @@ import sys
 from .usage import ArgumentParser, user_error_message
 
 COMMANDS: dict[str, tuple[str, str]] = {
-    "demo": ("dyq.apps.demo", "quantize a small OpenVLA-shaped policy and run a control loop"),
+    "demo": ("dyq.apps.demo", "a trained robot policy in closed loop: DyQ against fp32 (needs the sim extra)"),
     "dispatch": ("dyq.apps.dispatch_cli", "dispatcher tools: replay a trajectory, write a demo trajectory or config"),
+    "collect": ("dyq.sim.demos", "scripted-expert demonstrations for a task, in robomimic's HDF5 layout"),
     "train": ("dyq.sim.train", "behavior-clone a robot policy on demonstrations (robomimic HDF5)"),
     "eval": ("dyq.sim.evaluate", "closed-loop evaluation: task x configuration x seed grid, cached and resumable"),
     "profile": ("dyq.sim.profile", "step-wise perturbation profile of a task's policy; proxy correlations (Sec. III)"),

@@ -38,11 +38,19 @@ from ..core.precision import FALLBACK_BITS, QUANTIZED_BITS, check_bits
 HYSTERESIS_MODES = ("window", "counter", "none")
 INPUT_KINDS = ("action", "pose")
 
-def _check_int(value, name: str, minimum: int) -> int:
+# Upper bounds of the sizes a config may ask for: far above any use (the paper's windows are 5 and 10
+# steps, its history a few hundred), low enough that no config allocates more than a few MiB.
+MAX_HISTORY = 1 << 16    # samples per percentile history (two arrays of doubles: 1 MiB)
+MAX_WINDOW = 1 << 12     # steps of a proxy window or of the hysteresis delay K
+MAX_ACTION_LENGTH = 1 << 12  # entries of an action or pose (the slices' bounds)
+
+
+def _check_int(value, name: str, minimum: int, maximum: int | None = None) -> int:
+    expected = f"an int >= {minimum}" if maximum is None else f"an int in [{minimum}, {maximum}]"
     if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, np.integer)):
-        raise TypeError(f"{name} must be an int >= {minimum}, got {type(value).__name__} {value!r}")
-    if value < minimum:
-        raise ValueError(f"{name} must be an int >= {minimum}, got {value}")
+        raise TypeError(f"{name} must be {expected}, got {type(value).__name__} {value!r}")
+    if value < minimum or (maximum is not None and value > maximum):
+        raise ValueError(f"{name} must be {expected}, got {value}")
     return int(value)
 
 
@@ -58,8 +66,8 @@ def _check_real(value, name: str) -> float:
 def _check_slice(value, name: str) -> tuple[int, int]:
     if not isinstance(value, (tuple, list)) or len(value) != 2:
         raise TypeError(f"{name} must be a pair (start, stop) of ints, got {value!r}")
-    start = _check_int(value[0], f"{name}[0]", 0)
-    stop = _check_int(value[1], f"{name}[1]", 1)
+    start = _check_int(value[0], f"{name}[0]", 0, MAX_ACTION_LENGTH - 1)
+    stop = _check_int(value[1], f"{name}[1]", 1, MAX_ACTION_LENGTH)
     if stop <= start:
         raise ValueError(f"{name} must satisfy 0 <= start < stop, got ({start}, {stop})")
     return (start, stop)
@@ -84,7 +92,7 @@ class ProxyWeight:
         if self.name not in PROXIES:
             raise ValueError(f"proxy name must be one of {tuple(PROXIES)}, got {self.name!r}")
         object.__setattr__(self, "weight", _check_real(self.weight, f"{self.name} weight"))
-        object.__setattr__(self, "window", _check_int(self.window, f"{self.name} window", 1))
+        object.__setattr__(self, "window", _check_int(self.window, f"{self.name} window", 1, MAX_WINDOW))
 
 
 # The paper's fusion: lambda weighs Motion Fineness over W_macro steps, 1 - lambda Angular Jerk over W_micro.
@@ -163,7 +171,7 @@ def _with_paper_values(proxies: tuple[ProxyWeight, ...], ladder: tuple[tuple[flo
         if key in values:
             if name not in by_name:
                 raise ValueError(f"{key} is the window of {name}, which the proxies do not list")
-            by_name[name] = ProxyWeight(name, by_name[name].weight, _check_int(values[key], key, 1))
+            by_name[name] = ProxyWeight(name, by_name[name].weight, _check_int(values[key], key, 1, MAX_WINDOW))
     rungs = [list(rung) for rung in ladder]
     if {"theta_2_4", "theta_4_8", "theta_fp"} & set(values):
         for key, bits in (("theta_2_4", 2), ("theta_4_8", 4)):
@@ -233,8 +241,9 @@ class DispatchConfig:
         set_ = lambda name, value: object.__setattr__(self, name, value)  # noqa: E731 (frozen)
         set_("proxies", _check_proxies(proxies))
         set_("ladder", _check_ladder(ladder))
-        for name, value in (("delay_window", delay_window), ("history", history), ("warmup", warmup)):
-            set_(name, _check_int(value, name, 1))
+        for name, value, maximum in (("delay_window", delay_window, MAX_WINDOW), ("history", history, MAX_HISTORY),
+                                     ("warmup", warmup, MAX_HISTORY)):
+            set_(name, _check_int(value, name, 1, maximum))
         if self.warmup > self.history:
             raise ValueError(f"warmup must be <= history ({self.history}), got {self.warmup}")
         set_("percentile", _check_real(percentile, "percentile"))
@@ -344,7 +353,7 @@ class RollingPercentile:
     __slots__ = ("capacity", "percentile", "_fraction", "_ring", "_sorted", "_next")
 
     def __init__(self, capacity: int, percentile: float):
-        self.capacity = _check_int(capacity, "capacity", 1)
+        self.capacity = _check_int(capacity, "capacity", 1, MAX_HISTORY)
         self.percentile = _check_real(percentile, "percentile")
         if not 0.0 < self.percentile <= 100.0:
             raise ValueError(f"percentile must be in (0, 100], got {self.percentile}")
@@ -390,7 +399,11 @@ class RollingPercentile:
 class _NormalizedProxy:
     """A proxy whose raw sample is divided by the ``percentile`` of its recent samples and averaged over
     a window. ``update`` takes the step's translation and rotation; ``value`` is the windowed mean
-    (NaN while the window is empty). A scale of 0 leaves the step's sample undefined (NaN, not averaged)."""
+    (NaN while the window is empty). A scale of 0 leaves the step's sample undefined (NaN, not averaged).
+
+    A raw sample or a normalized one that overflows (finite motion whose norm or ratio is beyond the
+    floats) enters neither the history nor the window; ``overflowed`` says so for the step, and the
+    dispatcher then falls back to full precision."""
 
     name = ""
 
@@ -405,19 +418,31 @@ class _NormalizedProxy:
             self._scale.clear()
         self._window.clear()
         self.sample = self.scale = math.nan  # the step's normalized value and the scale it used
+        self.overflowed = False
 
     def _push(self, raw: float) -> None:
+        self.overflowed = not math.isfinite(raw)
+        if self.overflowed:
+            self.sample = math.nan
+            return
         self._scale.push(raw)
         scale = self.scale = self._scale.value()
         if scale > 0.0:
-            self.sample = self._normalize(raw, scale)
-            self._window.append(self.sample)
+            sample = self._normalize(raw, scale)
+            self.overflowed = not math.isfinite(sample)
+            self.sample = math.nan if self.overflowed else sample
+            if not self.overflowed:
+                self._window.append(sample)
         else:
             self.sample = math.nan
 
     def value(self) -> float:
         window = self._window
-        return sum(window) / len(window) if window else math.nan
+        if not window:
+            return math.nan
+        mean = sum(window) / len(window)
+        # Finite samples whose sum overflows: the mean of the quotients cannot.
+        return mean if math.isfinite(mean) else sum(v / len(window) for v in window)
 
     @property
     def is_warm(self) -> bool:
@@ -452,6 +477,7 @@ class AngularJerk(_NormalizedProxy):
 
     def update(self, translation: list[float], rotation: list[float]) -> None:
         previous, self._previous_rotation = self._previous_rotation, rotation
+        self.overflowed = False
         if previous is not None:
             self._push(math.dist(rotation, previous))
 
@@ -473,11 +499,14 @@ PROXIES = {proxy.name: proxy for proxy in (MotionFineness, AngularJerk)}
 
 def fuse_sensitivity(values, weights) -> float:
     """S_t = max(0, sum_i w_i * value_i); a term of zero weight is left out, so a missing (NaN) proxy
-    of weight 0 does not poison S_t."""
+    of weight 0 does not poison S_t. A sum that is not finite (a NaN or overflowing term) is +inf, the
+    most sensitive value: it maps to the 16-bit fallback, never to a lower precision."""
     fused = 0.0
     for value, weight in zip(values, weights):
         if weight > 0.0:
             fused += weight * value
+    if not math.isfinite(fused):
+        return math.inf
     return fused if fused > 0.0 else 0.0
 
 
@@ -534,7 +563,7 @@ class Hysteresis:
     __slots__ = ("delay_window", "mode", "_bits", "_targets", "_count", "_candidate", "_update")
 
     def __init__(self, delay_window: int, mode: str = "window"):
-        self.delay_window = _check_int(delay_window, "delay_window (K)", 1)
+        self.delay_window = _check_int(delay_window, "delay_window (K)", 1, MAX_WINDOW)
         self.mode = _check_choice(mode, "mode", HYSTERESIS_MODES)
         self._update = {"window": self._update_window, "counter": self._update_counter, "none": self._update_none}[mode]
         self.reset()
@@ -648,7 +677,10 @@ class KinematicDispatcher:
     def _values(self, action) -> list[float]:
         """Validate one action (or pose) and return it as a list of Python floats."""
         try:
-            array_ = np.asarray(action, dtype=np.float64)
+            array_ = np.asarray(action)
+            if array_.dtype.kind == "c":
+                raise TypeError(f"complex values (dtype {array_.dtype}) are not kinematics")
+            array_ = array_.astype(np.float64, copy=False)
         except (TypeError, ValueError, RuntimeError) as err:
             raise TypeError(
                 f"action must be a 1-D array of at least {self._min_length} real numbers "
@@ -684,8 +716,13 @@ class KinematicDispatcher:
 
     def _dispatch(self) -> int:
         proxies = self._proxies.values()
-        warm = self._warm = all(proxy.is_warm for proxy, weight in zip(proxies, self._weights) if weight > 0.0)
-        if warm:
+        weighted = [proxy for proxy, weight in zip(proxies, self._weights) if weight > 0.0]
+        warm = self._warm = all(proxy.is_warm for proxy in weighted)
+        if any(proxy.overflowed for proxy in weighted):
+            # The step's kinematics overflowed: nothing to judge it by, so full precision.
+            sensitivity = math.inf
+            target = FALLBACK_BITS
+        elif warm:
             sensitivity = fuse_sensitivity([proxy.value() for proxy in proxies], self._weights)
             target = self.allocate(sensitivity)
         else:

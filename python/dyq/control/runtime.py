@@ -126,6 +126,7 @@ class DyQRuntime:
         self._forced: int | None = None
         self._step_index = 0
         self._last_decode_bits = flag.bits
+        self._closed = False
 
     # -- control loop -------------------------------------------------------------------------
 
@@ -147,26 +148,39 @@ class DyQRuntime:
             raise
         prefill_ms = (time.perf_counter() - start) * 1e3
         self.publish()
-        start = time.perf_counter()
-        result = decode(prefill_output)
-        decode_ms = (time.perf_counter() - start) * 1e3
         stats = self._stats[-1]
-        stats.prefill_ms, stats.decode_ms = prefill_ms, decode_ms
-        return result
+        stats.prefill_ms = prefill_ms
+        start = time.perf_counter()
+        try:
+            return decode(prefill_output)
+        finally:
+            stats.decode_ms = (time.perf_counter() - start) * 1e3
 
     def begin_step(self, kinematics) -> None:
         """Start step t: hand ``kinematics`` to the worker and, with a fixed ``prefill_bits``, set
-        the prefill's precision. Call before launching the prefill."""
+        the prefill's precision. Call before launching the prefill.
+
+        If the barrier or the flag write fails, the exception reaches the caller and the step is
+        dropped (the dispatcher still sees ``kinematics``): the next ``begin_step`` starts normally."""
+        if self._closed:
+            raise RuntimeError("DyQRuntime is closed; create a new one")
         if self._pending is not None:
             raise RuntimeError("begin_step called twice without publish(); publish the previous step first")
         self._pending = self._executor.submit(self._dispatch, kinematics)
         if self.prefill_bits != "previous" and self._forced is None:
-            self._write(self.prefill_bits)
+            try:
+                self._write(self.prefill_bits)
+            except BaseException:
+                self._abandon()
+                raise
 
     def publish(self) -> int:
         """Wait for b*_t, write it (or the forced precision) into the flag, record the step's
         statistics and return the bits the decode will run at. Call after the prefill, before the
-        decode."""
+        decode.
+
+        A failure of the dispatcher, the barrier or the flag write reaches the caller; the step is then
+        dropped (no statistics) and the next ``begin_step`` starts normally."""
         if self._pending is None:
             raise RuntimeError("publish called without begin_step")
         start = time.perf_counter()
@@ -270,6 +284,7 @@ class DyQRuntime:
     def close(self) -> None:
         """Stop the worker thread (pending work finishes first)."""
         self._abandon()
+        self._closed = True
         self._executor.shutdown(wait=True)
 
     def __enter__(self) -> "DyQRuntime":
@@ -302,8 +317,8 @@ def force_precision(target: PrecisionFlag | DyQRuntime, bits: int) -> contextlib
 def _forced_precision(target: PrecisionFlag | DyQRuntime, bits: int) -> Iterator[PrecisionFlag | DyQRuntime]:
     if isinstance(target, DyQRuntime):
         previous_forced, previous_bits = target._forced, target.flag.bits
+        target._write(bits)  # a failing barrier or write leaves the runtime as it was
         target._forced = bits
-        target._write(bits)
         try:
             yield target
         finally:

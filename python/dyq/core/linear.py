@@ -11,10 +11,29 @@ from .precision import check_bits, check_group_size
 ACTIVATION_DTYPES = (torch.float32, torch.bfloat16, torch.float16)
 
 
-def _check_group_size(in_features: int, group_size: int) -> None:
-    check_group_size(group_size)
-    if in_features % group_size != 0:
-        raise ValueError(f"in_features = {in_features} is not a multiple of group_size = {group_size}")
+def _check_features(value, name: str) -> int:
+    if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+        raise ValueError(f"{name} must be an int >= 1, got {value!r}")
+    return value
+
+
+def _packed_columns(in_features: int) -> int:
+    """K of the packed weight: in_features, plus one zero column when it is odd (two codes per byte)."""
+    return in_features + in_features % 2
+
+
+def _quantized_weight(linear: nn.Linear, group_size: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """(qweight, scales) of ``linear.weight`` on its device; an odd in_features gets a zero column, which
+    changes no group's scale and no product."""
+    weight = linear.weight.detach()
+    if weight.shape[1] % 2:
+        weight = nn.functional.pad(weight, (0, 1))
+    qweight, scales = ops.quantize_weight(weight.to("cpu"), group_size)
+    return qweight.to(linear.weight.device), scales.to(linear.weight.device)
+
+
+def _bias_dtype(linear: nn.Linear) -> torch.dtype:
+    return linear.weight.dtype if linear.weight.dtype in ACTIVATION_DTYPES else torch.float32
 
 
 class DyQLinear(nn.Module):
@@ -25,14 +44,23 @@ class DyQLinear(nn.Module):
     at run time, so that one write switches every layer of a model without re-tracing.
 
     Buffers (and so the ``state_dict``): ``qweight`` uint8 ``[N, K/2]``, ``scales`` float32
-    ``[N, K/group_size]`` and the optional ``bias`` ``[N]``; the layout is in docs/numerics.md.
+    ``[N, ceil(K/group_size)]`` and the optional ``bias`` ``[N]``; the layout is in docs/numerics.md. Any
+    ``in_features`` works: the last group of a row holds the remainder when group_size does not divide it,
+    and an odd ``in_features`` is stored with one zero column (K = in_features + 1) that the forward pads x
+    with.
+
+    Gradients: ``x.grad`` is that of ``x W^T + b`` with the dequantized weight (straight-through over the
+    activation quantization), so adapters trained beside a frozen DyQLinear (LoRA) learn; the INT4 weights
+    themselves have no gradient.
     """
 
     def __init__(self, in_features: int, out_features: int, bias: bool = True, *, group_size: int = 128,
                  act_bits: int = 16, flag: PrecisionFlag | None = None, device=None,
                  dtype: torch.dtype | None = None) -> None:
         super().__init__()
-        _check_group_size(in_features, group_size)
+        _check_features(in_features, "in_features")
+        _check_features(out_features, "out_features")
+        check_group_size(group_size)
         dtype = dtype or torch.get_default_dtype()
         if dtype not in ACTIVATION_DTYPES:
             raise TypeError(f"dtype must be one of {ACTIVATION_DTYPES}, got {dtype}")
@@ -43,8 +71,9 @@ class DyQLinear(nn.Module):
         self.flag = None
         if flag is not None:
             self.bind_flag(flag)
-        self.register_buffer("qweight", torch.zeros(out_features, in_features // 2, dtype=torch.uint8, device=device))
-        self.register_buffer("scales", torch.ones(out_features, in_features // group_size, dtype=torch.float32,
+        k = _packed_columns(in_features)
+        self.register_buffer("qweight", torch.zeros(out_features, k // 2, dtype=torch.uint8, device=device))
+        self.register_buffer("scales", torch.ones(out_features, -(-k // group_size), dtype=torch.float32,
                                                   device=device))
         if bias:
             self.bias = nn.Parameter(torch.zeros(out_features, dtype=dtype, device=device), requires_grad=False)
@@ -57,16 +86,44 @@ class DyQLinear(nn.Module):
         """Quantize an ``nn.Linear`` (its weight becomes INT4; its bias keeps its dtype)."""
         if not isinstance(linear, nn.Linear):
             raise TypeError(f"linear must be a torch.nn.Linear, got {type(linear).__name__}")
-        weight = linear.weight.detach()
-        dtype = weight.dtype if weight.dtype in ACTIVATION_DTYPES else torch.float32
         module = cls(linear.in_features, linear.out_features, bias=linear.bias is not None, group_size=group_size,
-                     act_bits=act_bits, flag=flag, device=weight.device, dtype=dtype)
-        qweight, scales = ops.quantize_weight(weight.to("cpu"), group_size)
+                     act_bits=act_bits, flag=flag, device=linear.weight.device, dtype=_bias_dtype(linear))
+        qweight, scales = _quantized_weight(linear, group_size)
         module.qweight.copy_(qweight)
         module.scales.copy_(scales)
         if linear.bias is not None:
             module.bias.data.copy_(linear.bias.detach())
         return module
+
+    @classmethod
+    def convert_in_place(cls, linear: nn.Linear, group_size: int = 128, act_bits: int = 16,
+                         flag: PrecisionFlag | None = None, *, quantize: bool = True) -> "DyQLinear":
+        """Turn ``linear`` itself into a DyQLinear (its class changes; its weight becomes INT4), so that
+        every reference to it, in any parent or in the caller's hands, sees the quantized layer. Returns it.
+        ``quantize=False`` leaves empty INT4 buffers of the right shape (on the weight's device, meta
+        included) for a state dict to be loaded into."""
+        if not isinstance(linear, nn.Linear):
+            raise TypeError(f"linear must be a torch.nn.Linear, got {type(linear).__name__}")
+        check_group_size(group_size)
+        act_bits = check_bits(act_bits, "act_bits")
+        if quantize:
+            qweight, scales = _quantized_weight(linear, group_size)
+        else:
+            k, device = _packed_columns(linear.in_features), linear.weight.device
+            qweight = torch.zeros(linear.out_features, k // 2, dtype=torch.uint8, device=device)
+            scales = torch.ones(linear.out_features, -(-k // group_size), dtype=torch.float32, device=device)
+        bias = linear.bias
+        if bias is not None:
+            bias = nn.Parameter(bias.detach().to(_bias_dtype(linear)), requires_grad=False)
+        del linear._parameters["weight"]
+        del linear._parameters["bias"]
+        linear.__class__ = cls
+        linear.group_size, linear.act_bits, linear.flag = group_size, act_bits, None
+        linear.bind_flag(flag)
+        linear.register_buffer("qweight", qweight)
+        linear.register_buffer("scales", scales)
+        linear.register_parameter("bias", bias)
+        return linear
 
     # -- precision ---------------------------------------------------------------------------------------------
     def bind_flag(self, flag: PrecisionFlag | None) -> None:
@@ -90,8 +147,15 @@ class DyQLinear(nn.Module):
 
     # -- forward -----------------------------------------------------------------------------------------------
     def forward(self, x: torch.Tensor) -> torch.Tensor:
+        if not isinstance(x, torch.Tensor):
+            raise TypeError(f"DyQLinear input must be a torch.Tensor, got {type(x).__name__}")
         if x.dtype not in ACTIVATION_DTYPES:
             raise TypeError(f"DyQLinear input must be one of {ACTIVATION_DTYPES}, got {x.dtype}")
+        if x.dim() < 1 or x.shape[-1] != self.in_features:
+            raise ValueError(f"DyQLinear input must have shape [..., in_features = {self.in_features}], "
+                             f"got {tuple(x.shape)}")
+        if self.in_features % 2:
+            x = nn.functional.pad(x, (0, 1))  # the zero column of the packed weight
         bias = self.bias
         if bias is not None and bias.dtype != x.dtype:
             bias = bias.to(x.dtype)
@@ -108,8 +172,8 @@ class DyQLinear(nn.Module):
         return self
 
     def dequantized_weight(self) -> torch.Tensor:
-        """The float32 weight ``[N, K]`` the INT4 codes represent (for inspection and tests)."""
-        return ops.dequantize_weight(self.qweight, self.scales, self.group_size)
+        """The float32 weight ``[N, in_features]`` the INT4 codes represent (for inspection and tests)."""
+        return ops.dequantize_weight(self.qweight, self.scales, self.group_size)[:, :self.in_features]
 
     def weight_bytes(self) -> int:
         """Bytes of the packed weight, its scales and the bias."""

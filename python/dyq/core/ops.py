@@ -9,47 +9,88 @@ from __future__ import annotations
 import torch
 
 from .. import _C
-from .precision import GROUP_SIZES, VALID_BITS, spelled_out
+from .precision import VALID_BITS
 
 
+# Every fake kernel first runs the op's C++ validation (csrc/torch/checks.h, through the ``_check_*`` ops),
+# the same that the CPU and CUDA kernels run: a traced or meta call fails exactly where a real one would.
 @torch.library.register_fake("dyq::quantize_weight")
 def _quantize_weight_fake(weight, group_size):
+    torch.ops.dyq._check_quantize_weight(weight, group_size)
     n, k = weight.shape
     return (weight.new_empty((n, k // 2), dtype=torch.uint8),
-            weight.new_empty((n, k // group_size), dtype=torch.float32))
+            weight.new_empty((n, _groups(k, group_size)), dtype=torch.float32))
 
 
 @torch.library.register_fake("dyq::dequantize_weight")
 def _dequantize_weight_fake(qweight, scales, group_size):
+    torch.ops.dyq._check_dequantize_weight(qweight, scales, group_size)
     return scales.new_empty((qweight.shape[0], qweight.shape[1] * 2), dtype=torch.float32)
 
 
 @torch.library.register_fake("dyq::quantize_activations")
 def _quantize_activations_fake(x, group_size, act_bits):
+    torch.ops.dyq._check_quantize_activations(x, group_size, act_bits)
     k = x.shape[-1]
     lead = tuple(x.shape[:-1])
     return (x.new_empty(lead + (k * act_bits // 8,), dtype=torch.uint8),
-            x.new_empty(lead + (k // group_size,), dtype=torch.float32),
-            x.new_empty(lead + (k // group_size,), dtype=torch.uint8))
+            x.new_empty(lead + (_groups(k, group_size),), dtype=torch.float32),
+            x.new_empty(lead + (_groups(k, group_size),), dtype=torch.uint8))
 
 
+@torch.library.register_fake("dyq::gemm")
 def _gemm_fake(x, qweight, scales, group_size, act_bits, bias=None):
-    """The fake kernel of ``dyq::gemm`` and ``dyq::gemm_with_flag`` (``act_bits`` an int or the flag)."""
-    torch._check(group_size in GROUP_SIZES,
-                 lambda: f"dyq: group_size must be {spelled_out(GROUP_SIZES)}, got {group_size}")
-    torch._check(qweight.dim() == 2, lambda: f"dyq: qweight must have shape [N, K/2], got {tuple(qweight.shape)}")
-    torch._check(x.shape[-1] == qweight.shape[1] * 2,
-                 lambda: f"dyq: x has {x.shape[-1]} features but the weight expects K = {qweight.shape[1] * 2}")
+    torch.ops.dyq._check_gemm(x, qweight, scales, group_size, act_bits, bias)
     return x.new_empty(tuple(x.shape[:-1]) + (qweight.shape[0],))
 
 
-torch.library.register_fake("dyq::gemm")(_gemm_fake)
-torch.library.register_fake("dyq::gemm_with_flag")(_gemm_fake)
+@torch.library.register_fake("dyq::gemm_with_flag")
+def _gemm_with_flag_fake(x, qweight, scales, group_size, act_bits_flag, bias=None):
+    torch.ops.dyq._check_gemm_with_flag(x, qweight, scales, group_size, act_bits_flag, bias)
+    return x.new_empty(tuple(x.shape[:-1]) + (qweight.shape[0],))
+
+
+# ---- autograd: gradients through the frozen INT4 weights ---------------------------------------------
+#
+# The weights are static, so only x (and the bias) get gradients. The activation quantization is treated
+# as the identity in the backward pass (straight-through): the gradient is that of x W^T + bias with the
+# dequantized weight W = s_w * q_w, i.e. grad_x = grad_y W, at every bit-width. This is what LoRA-style
+# adapters on a frozen 4-bit base need (QLoRA's backward through NF4 weights does the same).
+
+def _gemm_setup_context(ctx, inputs, output):
+    x, qweight, scales, group_size, _, bias = inputs
+    if scales.requires_grad:
+        raise RuntimeError("dyq: the INT4 weights are frozen: scales (and qweight) have no gradient; train "
+                           "adapters beside the layer (LoRA) or the bias instead")
+    ctx.group_size = group_size
+    ctx.x_shape, ctx.x_dtype = x.shape, x.dtype
+    ctx.has_bias = bias is not None
+    ctx.save_for_backward(qweight, scales)
+
+
+def _gemm_backward(ctx, grad_out):
+    qweight, scales = ctx.saved_tensors
+    grad_x = grad_bias = None
+    if ctx.needs_input_grad[0]:
+        weight = torch.ops.dyq.dequantize_weight(qweight, scales, ctx.group_size)  # [N, K] fp32
+        grad_x = (grad_out.reshape(-1, weight.shape[0]).float() @ weight).to(ctx.x_dtype).reshape(ctx.x_shape)
+    if ctx.has_bias and ctx.needs_input_grad[5]:
+        grad_bias = grad_out.reshape(-1, grad_out.shape[-1]).sum(dim=0)
+    return grad_x, None, None, None, None, grad_bias
+
+
+torch.library.register_autograd("dyq::gemm", _gemm_backward, setup_context=_gemm_setup_context)
+torch.library.register_autograd("dyq::gemm_with_flag", _gemm_backward, setup_context=_gemm_setup_context)
+
+
+def _groups(k, group_size: int):
+    """ceil(K / G): groups per row, the last holding the remainder when G does not divide K."""
+    return (k + group_size - 1) // group_size
 
 
 def quantize_weight(weight: torch.Tensor, group_size: int = 128) -> tuple[torch.Tensor, torch.Tensor]:
-    """Static symmetric INT4 quantization of ``weight [N, K]``: returns (qweight uint8 [N, K/2],
-    scales float32 [N, K/group_size])."""
+    """Static symmetric INT4 quantization of ``weight [N, K]`` (K even): returns (qweight uint8 [N, K/2],
+    scales float32 [N, ceil(K/group_size)]); the last group of a row holds the remainder."""
     return torch.ops.dyq.quantize_weight(weight, group_size)
 
 

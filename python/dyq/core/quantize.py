@@ -39,11 +39,18 @@ def _matches(name: str, patterns: Iterable[SkipPattern]) -> bool:
 
 @dataclass
 class QuantizationReport:
-    """What :func:`quantize_model` converted, what it left alone and why, and the memory it saved."""
+    """What :func:`quantize_model` converted, what it left alone and why, and the memory it saved.
+
+    ``converted`` names each converted layer once (its first name); ``shared`` lists the other names of
+    a layer that several parents hold (tied modules), all of which now hold the one DyQLinear;
+    ``already_quantized`` names the DyQLinear layers found (a second call converts nothing and says so).
+    """
 
     group_size: int
     converted: list[str] = field(default_factory=list)
     skipped: dict[str, str] = field(default_factory=dict)
+    shared: dict[str, list[str]] = field(default_factory=dict)
+    already_quantized: list[str] = field(default_factory=list)
     linear_bytes_before: int = 0
     linear_bytes_after: int = 0
     model_bytes_before: int = 0
@@ -59,6 +66,9 @@ class QuantizationReport:
 
     def __str__(self) -> str:
         mb = 1 / 2**20
+        if not self.converted and self.already_quantized:
+            return (f"dyq: the model is already quantized ({len(self.already_quantized)} DyQLinear layers); "
+                    f"nothing to convert" + "".join(f"\n  skipped {n}: {why}" for n, why in self.skipped.items()))
         lines = [
             f"dyq: converted {len(self.converted)} linear layers to INT4 (group_size={self.group_size}), "
             f"skipped {len(self.skipped)}",
@@ -67,56 +77,77 @@ class QuantizationReport:
             f"  whole model:      {self.model_bytes_before * mb:10.2f} MiB -> {self.model_bytes_after * mb:10.2f} MiB "
             f"({100 * self.model_ratio:.1f} %)",
         ]
+        lines += [f"  shared {name}: also held as {', '.join(others)}" for name, others in self.shared.items()]
+        if self.already_quantized:
+            lines.append(f"  {len(self.already_quantized)} layers were DyQLinear already")
         lines += [f"  skipped {name}: {why}" for name, why in self.skipped.items()]
         return "\n".join(lines)
 
 
 def quantize_model(model: nn.Module, group_size: int = 128, skip: Iterable[SkipPattern] = DEFAULT_SKIP,
                    act_bits: int = 16, flag: PrecisionFlag | None = None) -> QuantizationReport:
-    """Replace every ``nn.Linear`` of ``model`` in place by a :class:`DyQLinear` with INT4 weights.
+    """Convert every ``nn.Linear`` of ``model`` in place to a :class:`DyQLinear` with INT4 weights.
 
     Args:
-        model: any module, e.g. a Hugging Face ``LlamaForCausalLM`` or a BERT encoder.
-        group_size: INT4 group size along the input features (32, 64 or 128).
+        model: any module, e.g. a Hugging Face ``LlamaForCausalLM`` or a BERT encoder, or an ``nn.Linear``.
+        group_size: INT4 group size along the input features (32, 64 or 128). Any in_features works: the
+            last group of each row holds the remainder.
         skip: layer names to leave in full precision: globs matched against the full name and its last
             component (``"lm_head"``, ``"*.attn.*"``) or compiled regular expressions. The LM head is skipped
-            by default (it scores the action tokens; pass ``skip=()`` to convert it too).
+            by default (it scores the action tokens; pass ``skip=()`` to convert it too). A layer held under
+            several names is skipped if any of them matches.
         act_bits: the initial activation bit-width of the converted layers (16 = unquantized).
         flag: a :class:`PrecisionFlag` that every converted layer reads at run time, so that one write
             switches the whole model (the dispatcher's b*_t).
 
-    Layers whose input features are not a multiple of ``group_size`` stay as they are and are listed in the
-    report's ``skipped`` with the reason.
+    Each Linear is converted in place (its class becomes DyQLinear), so a layer that several parents
+    share stays one layer, and a bare ``nn.Linear`` passed as ``model`` is itself converted.
     """
     if not isinstance(model, nn.Module):
         raise TypeError(f"model must be a torch.nn.Module, got {type(model).__name__}")
     check_group_size(group_size)
     check_bits(act_bits, "act_bits")
+    if flag is not None and not isinstance(flag, PrecisionFlag):
+        raise TypeError(f"flag must be a dyq.PrecisionFlag or None, got {type(flag).__name__}")
     skip = tuple(skip) if not isinstance(skip, (str, re.Pattern)) else (skip,)
     report = QuantizationReport(group_size=group_size, model_bytes_before=_module_bytes(model))
 
-    targets = []
-    for name, module in model.named_modules():
-        if not isinstance(module, nn.Linear) or isinstance(module, DyQLinear):
-            continue
-        if _matches(name, skip):
-            report.skipped[name] = "matches a skip pattern"
-        elif module.in_features % group_size != 0:
-            report.skipped[name] = f"in_features = {module.in_features} is not a multiple of {group_size}"
-        else:
-            targets.append((name, module))
+    names: dict[int, list[str]] = {}
+    modules: dict[int, nn.Module] = {}
+    for name, module in model.named_modules(remove_duplicate=False):
+        if isinstance(module, DyQLinear):
+            if name not in report.already_quantized:
+                report.already_quantized.append(name)
+        elif isinstance(module, nn.Linear):
+            names.setdefault(id(module), []).append(name)
+            modules[id(module)] = module
 
-    for name, linear in targets:
-        parent_name, _, child = name.rpartition(".")
-        parent = model.get_submodule(parent_name) if parent_name else model
-        quantized = DyQLinear.from_linear(linear, group_size=group_size, act_bits=act_bits, flag=flag)
+    for key, linear in modules.items():
+        first, *others = names[key]
+        matched = [n for n in names[key] if _matches(n, skip)]
+        if matched:
+            report.skipped[first] = "matches a skip pattern" + (f" (as {matched[0]})" if matched[0] != first else "")
+            continue
         report.linear_bytes_before += _tensor_bytes(linear.parameters())
-        report.linear_bytes_after += quantized.weight_bytes()
-        setattr(parent, child, quantized)
-        report.converted.append(name)
+        DyQLinear.convert_in_place(linear, group_size=group_size, act_bits=act_bits, flag=flag)
+        report.linear_bytes_after += linear.weight_bytes()
+        report.converted.append(first)
+        if others:
+            report.shared[first] = others
 
     report.model_bytes_after = _module_bytes(model)
     return report
+
+
+def model_flag(model: nn.Module) -> PrecisionFlag:
+    """The one :class:`PrecisionFlag` the DyQLinear layers of ``model`` read (after ``copy.deepcopy`` or
+    ``torch.load`` of a whole model, the copy's own flag); an error if the layers have none or several."""
+    flags = {id(layer.flag): layer.flag for layer in dyq_layers(model)}
+    if None in (f for f in flags.values()) or len(flags) != 1:
+        unbound = sum(layer.flag is None for layer in dyq_layers(model))
+        raise ValueError(f"the DyQLinear layers of {type(model).__name__} are bound to {len(flags) - (unbound > 0)} "
+                         f"flags ({unbound} layers to none); bind one with dyq.bind_flag(model, flag)")
+    return next(iter(flags.values()))
 
 
 def dyq_layers(model: nn.Module) -> list[DyQLinear]:

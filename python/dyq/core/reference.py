@@ -5,6 +5,8 @@ the C++ and CUDA kernels against it. It never calls a dyq kernel.
 """
 from __future__ import annotations
 
+import math
+
 import torch
 
 GROUP_SIZES = (32, 64, 128)
@@ -13,8 +15,18 @@ WEIGHT_QMIN, WEIGHT_QMAX = -8, 7
 
 
 def _grouped(t: torch.Tensor, group_size: int) -> torch.Tensor:
-    """View [..., K] as [..., K/G, G]."""
+    """[..., K] as [..., ceil(K/G), G]. When G does not divide K the last group holds the remainder,
+    padded here with zeros: a zero changes neither a group's range (which always contains 0), nor its
+    absolute maximum, nor its sums, so the padding is never visible in a result."""
+    pad = -t.shape[-1] % group_size
+    if pad:
+        t = torch.nn.functional.pad(t, (0, pad))
     return t.reshape(*t.shape[:-1], t.shape[-1] // group_size, group_size)
+
+
+def _ungrouped(t: torch.Tensor, k: int) -> torch.Tensor:
+    """Inverse of _grouped: [..., groups, G] back to [..., K], the padding dropped."""
+    return t.reshape(*t.shape[:-2], t.shape[-2] * t.shape[-1])[..., :k]
 
 
 def quantize_weight(weight: torch.Tensor, group_size: int = 128):
@@ -25,7 +37,7 @@ def quantize_weight(weight: torch.Tensor, group_size: int = 128):
     scales = torch.where(empty, torch.ones_like(scales), scales)
     codes = torch.round(w / scales.unsqueeze(-1)).clamp(WEIGHT_QMIN, WEIGHT_QMAX)
     codes = torch.where(empty.unsqueeze(-1), torch.zeros_like(codes), codes)
-    return codes.reshape(weight.shape).to(torch.int8), scales
+    return _ungrouped(codes, weight.shape[-1]).to(torch.int8), scales
 
 
 def pack_int4(codes: torch.Tensor) -> torch.Tensor:
@@ -44,7 +56,7 @@ def unpack_int4(packed: torch.Tensor) -> torch.Tensor:
 
 def dequantize_weight(qweight: torch.Tensor, scales: torch.Tensor, group_size: int = 128) -> torch.Tensor:
     codes = _grouped(unpack_int4(qweight).float(), group_size)
-    return (codes * scales.unsqueeze(-1)).reshape(qweight.shape[0], -1)
+    return _ungrouped(codes * scales.unsqueeze(-1), qweight.shape[-1] * 2)
 
 
 def quantize_activations(x: torch.Tensor, group_size: int, act_bits: int):
@@ -59,6 +71,10 @@ def quantize_activations(x: torch.Tensor, group_size: int, act_bits: int):
     lo = safe.amin(dim=-1).clamp(max=0)
     hi = safe.amax(dim=-1).clamp(min=0)
     scales = (hi - lo) / levels
+    # A range beyond FLT_MAX (hi - lo overflows): halve both ends, which is exact, and double the result:
+    # the value an fp32 with a wider exponent would give, and finite.
+    wide = torch.isinf(scales)
+    scales = torch.where(wide, ((0.5 * hi - 0.5 * lo) / levels) * 2, scales)
     empty = scales == 0
     scales = torch.where(empty, torch.ones_like(scales), scales)
     zeros = torch.round(-lo / scales).clamp(0, levels)
@@ -68,7 +84,7 @@ def quantize_activations(x: torch.Tensor, group_size: int, act_bits: int):
     zeros = torch.where(zero_group, torch.zeros_like(zeros), zeros)
     codes = torch.where(zero_group.unsqueeze(-1), torch.zeros_like(codes), codes)
     scales = torch.where(finite, scales, torch.full_like(scales, float("nan")))
-    return codes.reshape(x.shape).to(torch.uint8), scales, zeros.to(torch.uint8)
+    return _ungrouped(codes, x.shape[-1]).to(torch.uint8), scales, zeros.to(torch.uint8)
 
 
 def pack_activations(codes: torch.Tensor, act_bits: int) -> torch.Tensor:
@@ -76,7 +92,7 @@ def pack_activations(codes: torch.Tensor, act_bits: int) -> torch.Tensor:
     if act_bits == 8:
         return codes.to(torch.uint8).clone()
     per_byte = 8 // act_bits
-    c = codes.to(torch.int32).reshape(*codes.shape[:-1], -1, per_byte)
+    c = codes.to(torch.int32).reshape(*codes.shape[:-1], codes.shape[-1] // per_byte, per_byte)
     shifts = torch.arange(per_byte, dtype=torch.int32) * act_bits
     return (c << shifts).sum(dim=-1).to(torch.uint8)
 
@@ -99,7 +115,7 @@ def gemm(x: torch.Tensor, qweight: torch.Tensor, scales: torch.Tensor, group_siz
     """
     k = x.shape[-1]
     n = qweight.shape[0]
-    x2 = x.reshape(-1, k)
+    x2 = x.reshape(math.prod(x.shape[:-1]), k)
     w_codes = _grouped(unpack_int4(qweight).to(accumulate_dtype), group_size)        # [N, Gs, G]
     s_w = scales.to(accumulate_dtype)                                                  # [N, Gs]
     if act_bits == 16:
@@ -120,7 +136,7 @@ def gemm_error_bound(x: torch.Tensor, qweight: torch.Tensor, scales: torch.Tenso
                      act_bits: int, bias: torch.Tensor | None = None) -> torch.Tensor:
     """sum of |terms| of the fp32 sums in ``gemm``: the scale of the rounding error a kernel may make."""
     k = x.shape[-1]
-    x2 = x.reshape(-1, k)
+    x2 = x.reshape(math.prod(x.shape[:-1]), k)
     w_codes = _grouped(unpack_int4(qweight).double().abs(), group_size)
     s_w = scales.double().abs()
     if act_bits == 16:

@@ -150,7 +150,7 @@ def load(path) -> list[dict]:
     return demos
 
 
-def add_collect_arguments(parser: argparse.ArgumentParser) -> None:
+def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Arguments of ``dyq collect``."""
     parser.add_argument("task", choices=sorted(envs.TASKS))
     parser.add_argument("--demos", type=int, default=200, help="successful demos to keep")
@@ -162,7 +162,7 @@ def add_collect_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--keep-failures", action="store_true", help="store failed episodes too")
 
 
-def run_collect(args: argparse.Namespace) -> int:
+def main(args: argparse.Namespace) -> int:
     """``dyq collect``: collect, then print the success rate of the attempts. Returns 1 if fewer demos than
     asked for were kept."""
     out = args.out or Path("demos") / f"{args.task}.hdf5"
@@ -180,5 +180,5 @@ if __name__ == "__main__":
     import sys
 
     p = argparse.ArgumentParser(prog="python -m dyq.sim.demos")
-    add_collect_arguments(p)
-    sys.exit(run_collect(p.parse_args()))
+    add_arguments(p)
+    sys.exit(main(p.parse_args()))

@@ -205,6 +205,9 @@ def update_results(out: Path, task: str, seeds: list[int], checkpoint: str, dige
     entry = data["tasks"].setdefault(task, {"configs": {}})
     if entry.get("checkpoint_digest") not in (None, digest):
         entry["configs"] = {}  # a retrained policy: the old rows describe another policy
+    checkpoint = Path(checkpoint).resolve()
+    if checkpoint.is_relative_to(Path.cwd()):
+        checkpoint = checkpoint.relative_to(Path.cwd())  # a path that means the same in any checkout
     entry.update(horizon=envs.spec(task).horizon, seeds=seeds, checkpoint=str(checkpoint), checkpoint_digest=digest)
     entry["configs"].update(rows)
     entry["comparisons"] = [c for c in (compare(entry["configs"], a, b) for a, b in COMPARISONS) if c]
@@ -272,6 +275,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--table", type=output_file(".md"), default=DEFAULT_TABLE)
     parser.add_argument("--video", type=output_dir, default=None, metavar="DIR",
                         help="also record seed 0 of each task (under dyq if evaluated) as DIR/<task>_<config>_seed0.gif")
+    parser.add_argument("--summarize-only", action="store_true",
+                        help="run nothing: merge the episodes cached so far into the results and the table")
     parser.add_argument("--no-progress", action="store_true")
 
 
@@ -316,23 +321,34 @@ def main(args: argparse.Namespace) -> int:
         return make_schedule(run_config(config).schedule, dyq_bits, seed, envs.spec(task).horizon)
 
     total = len(tasks) * len(set(first) | set(scheduled)) * len(seeds)
-    jobs = pending(first)
-    print(f"{total} episodes in the grid, {len(jobs)} to run before the schedules")
-    run_grid(jobs, args.workers, progress=not args.no_progress)
-    jobs = pending(scheduled, schedule_of)
-    if jobs:
-        print(f"{len(jobs)} scheduled episodes to run")
+    if not args.summarize_only:
+        jobs = pending(first)
+        print(f"{total} episodes in the grid, {len(jobs)} to run before the schedules")
         run_grid(jobs, args.workers, progress=not args.no_progress)
+        jobs = pending(scheduled, schedule_of)
+        if jobs:
+            print(f"{len(jobs)} scheduled episodes to run")
+            run_grid(jobs, args.workers, progress=not args.no_progress)
 
     data = None
     for task in tasks:
         rows = {}
         for config in configs:
-            episodes = [_read_episode(cache_path(args.cache, task, config, s, digests[task])) for s in seeds]
-            rows[config] = summarize(episodes)
+            # With --summarize-only, the episodes cached so far (a row says how many it holds).
+            paths = [cache_path(args.cache, task, config, s, digests[task]) for s in seeds]
+            episodes = [_read_episode(p) for p in paths if p.is_file()]
+            if episodes:
+                rows[config] = summarize(episodes)
         data = update_results(args.out, task, seeds, checkpoints[task], digests[task], rows)
     args.table.parent.mkdir(parents=True, exist_ok=True)
     args.table.write_text(markdown_table(data))
+    try:
+        from .plots import plot_success_vs_bits
+
+        for task in tasks:
+            print(f"wrote {plot_success_vs_bits(data['tasks'][task], task, args.table.parent / 'figures' / f'closed_loop_{task}.png')}")
+    except RuntimeError as err:  # no matplotlib: the table is still complete
+        print(f"no figure: {err}")
     print(markdown_table(data))
     print(f"wrote {args.out} and {args.table}")
     if args.video is not None:

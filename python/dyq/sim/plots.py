@@ -51,3 +51,27 @@ def plot_episode(episode, path: str | Path, title: str = "") -> Path:
     fig.savefig(path, dpi=110)
     plt.close(fig)
     return path
+
+
+def plot_success_vs_bits(entry: dict, task: str, path: str | Path) -> Path:
+    """The closed-loop table as a picture: success (with its Wilson 95 % interval) against mean bits,
+    one point per configuration."""
+    plt = _pyplot()
+    fig, ax = plt.subplots(figsize=(8, 5.5))
+    for name, row in entry["configs"].items():
+        lo, hi = row["wilson95"]
+        rate = row["success_rate"]
+        ax.errorbar(row["mean_bits"], rate, yerr=[[rate - lo], [hi - rate]], fmt="o", capsize=3)
+        ax.annotate(name, (row["mean_bits"], rate), textcoords="offset points", xytext=(5, 4), fontsize=8)
+    ax.set_xlabel("mean activation bits per control step (decode)")
+    ax.set_ylabel("success rate (Wilson 95 % interval)")
+    episodes = max(row["episodes"] for row in entry["configs"].values())
+    ax.set_title(f"{task}: closed-loop success against mean bits ({episodes} seeded episodes per configuration)")
+    ax.set_xticks([2, 4, 8, 16])
+    ax.grid(alpha=0.3)
+    fig.tight_layout()
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path

@@ -303,7 +303,7 @@ def run_episode(runner: PolicyRunner, task: str, config: RunConfig | str, seed: 
             latency = (time.perf_counter() - start) * 1e3
             counts.append(width_counts())
             action = np.clip(policy.action(bins), -1.0, 1.0)
-            obs, _, _, _ = env.step(action)
+            obs, _, _, _ = envs.step_env(env, action)
             if frames is not None:
                 frames.append(env.sim.render(camera_name=camera, width=frame_size, height=frame_size)[::-1])
             log["bits"].append(int(bits))

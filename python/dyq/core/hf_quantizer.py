@@ -1,0 +1,85 @@
+"""dyq as a Hugging Face quantization method: ``from_pretrained(..., quantization_config=DyQConfig(...))``.
+
+Registered through transformers' custom-quantizer hooks (``register_quantization_config`` /
+``register_quantizer``, transformers 5.x). Loading a float checkpoint with a :class:`DyQConfig`
+quantizes it after its weights are loaded (:func:`dyq.quantize_model`); ``save_pretrained`` writes the
+INT4 state dict with the config in ``config.json``, and ``from_pretrained`` of that directory rebuilds
+the DyQLinear layers before loading it. Either way every converted layer is bound to one new
+:class:`~dyq.PrecisionFlag` (``dyq.model_flag(model)``) holding ``act_bits``.
+"""
+from __future__ import annotations
+
+from typing import Any
+
+from torch import nn
+from transformers.quantizers.auto import register_quantization_config, register_quantizer
+from transformers.quantizers.base import HfQuantizer
+from transformers.utils.quantization_config import QuantizationConfigMixin
+
+from ..control.flag import PrecisionFlag
+from .linear import DyQLinear
+from .precision import check_bits, check_group_size
+from .quantize import _matches, quantize_model
+from .serialization import WEIGHT_METHODS
+
+
+@register_quantization_config("dyq")
+class DyQConfig(QuantizationConfigMixin):
+    """dyq's quantization config: INT4 weights in groups of ``group_size``, activations at ``act_bits``
+    (the flag's initial value), the layers of ``modules_to_not_convert`` kept in full precision.
+    ``weight_method`` and ``rotation`` leave room for later options (only round-to-nearest symmetric INT4
+    and no rotation exist today)."""
+
+    def __init__(self, group_size: int = 128, act_bits: int = 16, modules_to_not_convert=("lm_head",),
+                 weight_method: str = WEIGHT_METHODS[0], rotation: str | None = None, **kwargs: Any):
+        self.quant_method = "dyq"
+        self.group_size = check_group_size(group_size)
+        self.act_bits = check_bits(act_bits, "act_bits")
+        self.modules_to_not_convert = list(modules_to_not_convert or ())
+        if weight_method not in WEIGHT_METHODS:
+            raise ValueError(f"weight_method must be one of {WEIGHT_METHODS}, got {weight_method!r}")
+        if rotation is not None:
+            raise ValueError(f"rotation must be None (no rotation is implemented yet), got {rotation!r}")
+        self.weight_method, self.rotation = weight_method, rotation
+
+
+@register_quantizer("dyq")
+class DyQHfQuantizer(HfQuantizer):
+    """Quantizes on load (a float checkpoint) or rebuilds DyQLinear layers (a dyq checkpoint)."""
+
+    requires_calibration = False
+
+    def _targets(self, model: nn.Module):
+        skip = tuple(self.quantization_config.modules_to_not_convert)
+        return [(name, module) for name, module in model.named_modules()
+                if type(module) is nn.Linear and not _matches(name, skip)]
+
+    def _process_model_before_weight_loading(self, model, **kwargs):
+        if not self.pre_quantized:
+            return
+        config = self.quantization_config
+        for _, linear in self._targets(model):  # shells of the saved shape; the load fills them
+            DyQLinear.convert_in_place(linear, group_size=config.group_size, act_bits=config.act_bits,
+                                       quantize=False)
+
+    def _process_model_after_weight_loading(self, model, **kwargs):
+        config = self.quantization_config
+        flag = PrecisionFlag(config.act_bits)
+        if self.pre_quantized:
+            for module in model.modules():
+                if isinstance(module, DyQLinear):
+                    module.bind_flag(flag)
+        else:
+            quantize_model(model, group_size=config.group_size, skip=config.modules_to_not_convert,
+                           act_bits=config.act_bits, flag=flag)
+        return model
+
+    def param_needs_quantization(self, model, param_name: str, **kwargs) -> bool:
+        return False  # weights load as they are; conversion happens after loading
+
+    def is_serializable(self, safe_serialization=None) -> bool:
+        return True
+
+    @property
+    def is_trainable(self) -> bool:
+        return True  # adapters train beside the frozen INT4 weights

@@ -1,0 +1,147 @@
+"""Saving and loading quantized models: the weights as safetensors, the quantization state beside them.
+
+A directory written by :func:`save_quantized` holds
+
+* ``model.safetensors``: the model's state dict (INT4 ``qweight``, fp32 ``scales``, biases and every other
+  parameter), written by ``safetensors.torch.save_model`` so that tied tensors are stored once;
+* ``dyq_config.json``: what the weights alone do not say: the format version, the weight method, the
+  rotation (none yet; the keys are there for later methods), the flag's bit-width and, per converted
+  layer, its group size, activation bit-width and shape.
+
+:func:`load_quantized` rebuilds the DyQLinear layers of a freshly built model (or of a Hugging Face
+config's model) from that description, loads the tensors into them and binds them to one new
+:class:`~dyq.PrecisionFlag` holding the saved bit-width.
+"""
+from __future__ import annotations
+
+import json
+import os
+from typing import Any
+
+import torch
+from torch import nn
+
+from ..control.flag import PrecisionFlag
+from .linear import DyQLinear
+from .precision import check_bits, check_group_size
+
+CONFIG_NAME = "dyq_config.json"
+WEIGHTS_NAME = "model.safetensors"
+FORMAT_VERSION = 1
+WEIGHT_METHODS = ("rtn_int4_symmetric",)  # round-to-nearest symmetric INT4 per group (docs/numerics.md)
+
+
+def _safetensors():
+    try:
+        import safetensors.torch
+    except ImportError as err:  # pragma: no cover - safetensors comes with transformers
+        raise ImportError("dyq.save_quantized / load_quantized need the safetensors package") from err
+    return safetensors.torch
+
+
+def quantization_state(model: nn.Module) -> dict[str, Any]:
+    """The description :func:`save_quantized` writes to ``dyq_config.json``."""
+    layers, flags = {}, {}
+    for name, module in model.named_modules():
+        if isinstance(module, DyQLinear):
+            layers[name] = {"in_features": module.in_features, "out_features": module.out_features,
+                            "bias": module.bias is not None, "group_size": module.group_size,
+                            "act_bits": module.act_bits}
+            if module.flag is not None:
+                flags[id(module.flag)] = module.flag
+    if not layers:
+        raise ValueError(f"{type(model).__name__} contains no DyQLinear layer; run dyq.quantize_model first")
+    if len(flags) > 1:
+        raise ValueError(f"the DyQLinear layers of {type(model).__name__} are bound to {len(flags)} different "
+                         "flags; a saved model has one")
+    flag = next(iter(flags.values()), None)
+    return {"format": "dyq", "version": FORMAT_VERSION, "weight_method": WEIGHT_METHODS[0], "rotation": None,
+            "model_class": type(model).__name__, "flag_bits": flag.bits if flag is not None else None,
+            "layers": layers}
+
+
+def save_quantized(model: nn.Module, directory: str | os.PathLike) -> None:
+    """Write a quantized model to ``directory`` (created if needed): ``model.safetensors`` and
+    ``dyq_config.json``."""
+    state = quantization_state(model)
+    os.makedirs(directory, exist_ok=True)
+    _safetensors().save_model(model, os.fspath(os.path.join(directory, WEIGHTS_NAME)))
+    with open(os.path.join(directory, CONFIG_NAME), "w", encoding="utf-8") as f:
+        json.dump(state, f, indent=2)
+        f.write("\n")
+
+
+def read_quantization_state(directory: str | os.PathLike) -> dict[str, Any]:
+    """``dyq_config.json`` of ``directory``, checked."""
+    path = os.path.join(directory, CONFIG_NAME)
+    try:
+        with open(path, encoding="utf-8") as f:
+            state = json.load(f)
+    except FileNotFoundError:
+        raise FileNotFoundError(f"{os.fspath(directory)!r} holds no {CONFIG_NAME}; was it written by "
+                                "dyq.save_quantized?") from None
+    except json.JSONDecodeError as err:
+        raise ValueError(f"{path!r} is not valid JSON: {err}") from None
+    if not isinstance(state, dict) or state.get("format") != "dyq":
+        raise ValueError(f"{path!r} is not a dyq quantization config")
+    if state.get("version") != FORMAT_VERSION:
+        raise ValueError(f"{path!r} has format version {state.get('version')!r}; this dyq reads {FORMAT_VERSION}")
+    if state.get("weight_method") not in WEIGHT_METHODS:
+        raise ValueError(f"{path!r} uses weight method {state.get('weight_method')!r}; this dyq knows {WEIGHT_METHODS}")
+    if state.get("rotation") is not None:
+        raise ValueError(f"{path!r} uses rotation {state['rotation']!r}, which this dyq does not implement")
+    for name, layer in state["layers"].items():
+        check_group_size(layer["group_size"])
+        check_bits(layer["act_bits"], f"layers[{name!r}].act_bits")
+    if state["flag_bits"] is not None:
+        check_bits(state["flag_bits"], "flag_bits")
+    return state
+
+
+def _model_from_config(config, state: dict[str, Any]) -> nn.Module:
+    """A Hugging Face model built from its config (no download): the class its ``architectures`` names,
+    or else the class the saved model had."""
+    import transformers
+
+    architectures = (getattr(config, "architectures", None) or []) + [state.get("model_class") or ""]
+    cls = next((getattr(transformers, a) for a in architectures if hasattr(transformers, a)), None)
+    if cls is None:
+        raise ValueError("load_quantized got a config whose `architectures` names no transformers class "
+                         f"({architectures!r}); pass the model built from it instead")
+    return cls(config)
+
+
+def prepare_quantized_layers(model: nn.Module, state: dict[str, Any], flag: PrecisionFlag | None) -> None:
+    """Turn the Linear layers that ``state`` lists into DyQLinear layers of the saved geometry (their
+    contents are overwritten by the load that follows)."""
+    found = dict(model.named_modules())
+    for name, layer in state["layers"].items():
+        module = found.get(name)
+        if isinstance(module, DyQLinear):
+            continue
+        if not isinstance(module, nn.Linear):
+            raise ValueError(f"the saved model has a DyQLinear at {name!r}, but this model has "
+                             f"{type(module).__name__ if module is not None else 'nothing'} there")
+        if (module.in_features, module.out_features, module.bias is not None) != (
+                layer["in_features"], layer["out_features"], layer["bias"]):
+            raise ValueError(f"layer {name!r} is Linear({module.in_features}, {module.out_features}, "
+                             f"bias={module.bias is not None}) here but was saved as Linear({layer['in_features']}, "
+                             f"{layer['out_features']}, bias={layer['bias']})")
+        DyQLinear.convert_in_place(module, group_size=layer["group_size"], act_bits=layer["act_bits"], flag=flag,
+                                   quantize=False)
+
+
+def load_quantized(model_or_config, directory: str | os.PathLike) -> nn.Module:
+    """Load what :func:`save_quantized` wrote into ``model_or_config`` (a model of the same architecture,
+    freshly built, or a Hugging Face config to build it from) and return the model: its quantized layers
+    are rebuilt, their tensors loaded, and all of them bound to one new PrecisionFlag at the saved bits."""
+    state = read_quantization_state(directory)
+    model = model_or_config if isinstance(model_or_config, nn.Module) else _model_from_config(model_or_config, state)
+    flag = PrecisionFlag(state["flag_bits"]) if state["flag_bits"] is not None else None
+    with torch.no_grad():
+        prepare_quantized_layers(model, state, flag)
+    missing, unexpected = _safetensors().load_model(model, os.path.join(directory, WEIGHTS_NAME), strict=False)
+    if missing or unexpected:
+        raise ValueError(f"the saved weights do not fit this model: missing {sorted(missing)[:5]}, "
+                         f"unexpected {sorted(unexpected)[:5]}")
+    return model

@@ -1,0 +1,59 @@
+"""dyq through transformers' quantizer interface: quantize on load, save_pretrained / from_pretrained
+round trips, on Llama models built from configs (no download). The interface is transformers 5.x's
+(custom quantizers registered with register_quantization_config / register_quantizer)."""
+import pytest
+import torch
+
+import dyq
+
+transformers = pytest.importorskip("transformers")
+pytestmark = pytest.mark.skipif(int(transformers.__version__.split(".")[0]) != 5,
+                                reason="dyq's Hugging Face quantizer targets transformers 5.x")
+
+
+@pytest.fixture
+def float_checkpoint(tmp_path):
+    # hidden 576 (SmolLM2's) and intermediate 960 (SmolVLA's backbone): remainder groups at G = 128.
+    config = transformers.LlamaConfig(vocab_size=256, hidden_size=576, intermediate_size=960, num_hidden_layers=1,
+                                      num_attention_heads=4, num_key_value_heads=2)
+    torch.manual_seed(0)
+    transformers.LlamaForCausalLM(config).save_pretrained(tmp_path / "float")
+    return tmp_path / "float"
+
+
+IDS = torch.randint(0, 256, (2, 7), generator=torch.Generator().manual_seed(0))
+
+
+def test_from_pretrained_with_a_dyq_config_quantizes_on_load(float_checkpoint):
+    model = transformers.LlamaForCausalLM.from_pretrained(
+        float_checkpoint, quantization_config=dyq.DyQConfig(group_size=128, act_bits=8))
+    layers = [m for m in model.modules() if isinstance(m, dyq.DyQLinear)]
+    assert len(layers) == 7 and type(model.lm_head) is torch.nn.Linear  # every Linear but the LM head
+    assert dyq.model_flag(model).bits == 8
+    reference = transformers.LlamaForCausalLM.from_pretrained(float_checkpoint)
+    dyq.quantize_model(reference, group_size=128, act_bits=8, flag=dyq.PrecisionFlag(8))
+    with torch.no_grad():
+        assert torch.equal(model(IDS).logits, reference(IDS).logits)
+
+
+def test_save_pretrained_and_from_pretrained_round_trip_a_dyq_model(float_checkpoint, tmp_path):
+    model = transformers.LlamaForCausalLM.from_pretrained(
+        float_checkpoint, quantization_config=dyq.DyQConfig(group_size=64, act_bits=4))
+    model.save_pretrained(tmp_path / "dyq")
+    loaded = transformers.LlamaForCausalLM.from_pretrained(tmp_path / "dyq")
+    assert isinstance(loaded.config.quantization_config, dyq.DyQConfig)
+    assert loaded.model.layers[0].mlp.down_proj.group_size == 64 and dyq.model_flag(loaded).bits == 4
+    with torch.no_grad():
+        assert torch.equal(loaded(IDS).logits, model(IDS).logits)
+    dyq.set_precision(loaded, 16)  # the loaded model's one flag switches it
+    with torch.no_grad():
+        assert not torch.equal(loaded(IDS).logits, model(IDS).logits)
+
+
+def test_the_config_has_room_for_later_options_and_checks_them():
+    config = dyq.DyQConfig()
+    assert config.to_dict()["weight_method"] == "rtn_int4_symmetric" and config.to_dict()["rotation"] is None
+    with pytest.raises(ValueError, match="rotation must be None"):
+        dyq.DyQConfig(rotation="hadamard")
+    with pytest.raises(ValueError, match="group_size must be one of"):
+        dyq.DyQConfig(group_size=100)
