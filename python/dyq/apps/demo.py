@@ -76,6 +76,6 @@ def main(args: argparse.Namespace) -> int:
     for width in (2, 4, 8, 16):
         print(f"  {width:2d} bits: {chosen[width]:5d} steps ({100 * chosen[width] / total_steps:5.1f} %)   "
               f"{kernel[width]:7d} GEMMs ({100 * kernel[width] / max(1, total_calls):5.1f} %)")
-    path = plot_episode(dyq_episodes[0], args.plot)
+    path = plot_episode(dyq_episodes[0], args.plot, dispatch=runner.dispatch_base)
     print(f"\nwrote {path}")
     return 0

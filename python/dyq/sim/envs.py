@@ -75,12 +75,14 @@ def controller_config() -> dict:
     return load_composite_controller_config(controller="BASIC")
 
 
-def make_env(task: str, seed: int | None = None, horizon: int | None = None):
-    """A fresh environment for ``task``, reset with ``seed`` when one is given (see :func:`reset_env`)."""
+def make_env(task: str, seed: int | None = None, horizon: int | None = None, render: bool = False):
+    """A fresh environment for ``task``, reset with ``seed`` when one is given (see :func:`reset_env`);
+    ``render`` adds MuJoCo's offscreen renderer for videos (``env.sim.render``)."""
     import robosuite
 
+    kwargs = dict(ENV_KWARGS, has_offscreen_renderer=render)
     env = robosuite.make(spec(task).env_name, controller_configs=controller_config(),
-                         horizon=horizon or spec(task).horizon, seed=seed, **ENV_KWARGS)
+                         horizon=horizon or spec(task).horizon, seed=seed, **kwargs)
     if seed is not None:
         reset_env(env, seed)
     return env

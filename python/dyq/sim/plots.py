@@ -17,11 +17,11 @@ def _pyplot():
     return plt
 
 
-def plot_episode(episode, path: str | Path, title: str = "") -> Path:
-    """The dispatcher over one episode: M̃_t and J̃_t, their fusion S_t with the thresholds, and the
-    bit-width each control step's decode ran at."""
+def plot_episode(episode, path: str | Path, title: str = "", dispatch=None) -> Path:
+    """The dispatcher over one episode: M̃_t and J̃_t, their fusion S_t with the ladder's thresholds
+    (of ``dispatch``, the episode's :class:`dyq.DispatchConfig`), and the bit-width each control step's
+    decode ran at."""
     plt = _pyplot()
-    from .rollout import run_config
 
     steps = np.arange(episode.steps)
     fig, (top, middle, bottom) = plt.subplots(3, 1, figsize=(9, 6.5), sharex=True,
@@ -31,12 +31,10 @@ def plot_episode(episode, path: str | Path, title: str = "") -> Path:
     top.set_ylabel("normalized")
     top.legend(loc="upper right", fontsize=8)
     middle.plot(steps, episode.sensitivity, color="black", label="S_t")
-    config = run_config(episode.config)
-    if config.kind == "dyq":
-        dispatch = config.dispatch_config()
-        for name in ("theta_2_4", "theta_4_8", "theta_fp"):
-            if hasattr(dispatch, name):
-                middle.axhline(getattr(dispatch, name), linestyle=":", linewidth=1, color="gray")
+    if dispatch is not None:
+        for threshold, bits in dispatch.ladder:
+            middle.axhline(threshold, linestyle=":", linewidth=1, color="gray")
+            middle.annotate(f"{bits} bits below", (0, threshold), fontsize=7, color="gray", va="bottom")
     middle.set_ylabel("S_t")
     middle.legend(loc="upper right", fontsize=8)
     bottom.step(steps, episode.bits, where="post", color="tab:red")
