@@ -393,8 +393,12 @@ def measured_sensitivity(records: Sequence[ProfiledStep], reference: Reference, 
 
 # -- calibration --------------------------------------------------------------------------------------
 
-def config_key(config: "dyq.DispatchConfig") -> str:
-    return hashlib.sha256(json.dumps(config.to_dict(), sort_keys=True).encode()).hexdigest()[:12]
+def config_key(config: "dyq.DispatchConfig", prime=None) -> str:
+    """A closed-loop episode's dispatcher: its config and the actions that primed it."""
+    h = hashlib.sha256(json.dumps(config.to_dict(), sort_keys=True).encode())
+    if prime is not None:
+        h.update(np.ascontiguousarray(prime, dtype=np.float64).tobytes())
+    return h.hexdigest()[:12]
 
 
 def sweep_theta_fp(runner: PolicyRunner, task: str, store: Store, base: "dyq.DispatchConfig",
@@ -408,7 +412,7 @@ def sweep_theta_fp(runner: PolicyRunner, task: str, store: Store, base: "dyq.Dis
     for theta_fp in grid:
         config = base.replace(theta_2_4=min(base.theta_2_4, theta_fp), theta_4_8=min(base.theta_4_8, theta_fp),
                               theta_fp=theta_fp)
-        kind = f"sweep/{config_key(config)}"
+        kind = f"sweep/{config_key(config, _prime(runner))}"
         episodes = []
         for seed in seeds:
             episode = store.read(kind, seed)
