@@ -1,8 +1,8 @@
 // Timing of dyq::cpu::gemm on the Llama layer shapes, for every act_bits. Not built by default:
 //
-//   c++ -O2 -march=native -std=c++17 -I csrc -I /usr/include/eigen3 bench/bench_cpu_kernels.cpp
+//   c++ -O2 -std=c++17 -I csrc -I /usr/include/eigen3 bench/bench_cpu_kernels.cpp
 //       build/ctest/libdyq_cpu_kernels.a -lpthread -o /tmp/bench_cpu_kernels
-//   /tmp/bench_cpu_kernels [results.json]
+//   [DYQ_CPU_ISA=avx512|avx2|portable] /tmp/bench_cpu_kernels [results.json]
 //
 // Prints a table (median wall time, and process CPU time divided by the thread count, which stays
 // meaningful on a shared machine) and writes the same rows as JSON.

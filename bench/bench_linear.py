@@ -4,6 +4,7 @@ Prints a table of median milliseconds and writes bench/results/linear_cpu.json.
 
     python bench/bench_linear.py              # the full grid
     python bench/bench_linear.py --quick      # one shape, for a smoke run
+    DYQ_CPU_ISA=avx2 python bench/bench_linear.py --out linear_cpu_avx2.json   # another CPU path
 """
 from __future__ import annotations
 
@@ -22,10 +23,13 @@ BITS = [2, 4, 8, 16]
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--quick", action="store_true", help="one small shape only")
+    parser.add_argument("--shape", action="append", metavar="NxK", help="only these (N, K) shapes (repeatable)")
     parser.add_argument("--repeats", type=int, default=15)
     parser.add_argument("--out", default="linear_cpu.json")
     args = parser.parse_args()
     shapes, batches = ([(4096, 4096)], [1, 16]) if args.quick else (SHAPES, BATCHES)
+    if args.shape:
+        shapes = [tuple(int(v) for v in shape.lower().split("x")) for shape in args.shape]
 
     torch.manual_seed(0)
     rows, results = [], []
@@ -51,7 +55,8 @@ def main() -> None:
                         + [f"{min(speedups[f'w4a{b}'] for b in BITS):.2f}x"])
 
     headers = ["M", "N", "K", "fp32", "bf16"] + [f"W4A{b}" for b in BITS] + ["min speedup vs fp32"]
-    print_table(headers, rows, title="DyQLinear on the CPU, median ms (input fp32, group 128)")
+    isa = dyq.cpu_info()["isa"]
+    print_table(headers, rows, title=f"DyQLinear on the CPU ({isa} path), median ms (input fp32, group 128)")
     path = write_json(args.out, {"benchmark": "linear_cpu", "environment": environment(), "results": results})
     print(f"\nwrote {path}")
 

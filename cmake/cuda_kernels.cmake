@@ -1,8 +1,9 @@
 # The torch-free CUDA kernel library (pointers, sizes, a stream), compiled for every target architecture.
 # Included by the top-level CMakeLists.txt when DYQ_CUDA is ON; the torch glue is in cuda_glue.cmake.
 if(NOT DEFINED CMAKE_CUDA_ARCHITECTURES)
-  # A100 (sm_80), Ada (sm_89), H100/H200 (sm_90a). Real code only: no PTX to JIT on other devices.
-  set(CMAKE_CUDA_ARCHITECTURES "80-real;89-real;90a-real")
+  # A100 (sm_80), RTX 30xx / A10 / A6000 (sm_86), Jetson Orin (sm_87), Ada (sm_89), H100/H200 (sm_90a).
+  # Real code only: no PTX to JIT on other devices.
+  set(CMAKE_CUDA_ARCHITECTURES "80-real;86-real;87-real;89-real;90a-real")
 endif()
 enable_language(CUDA)
 find_package(CUDAToolkit REQUIRED)

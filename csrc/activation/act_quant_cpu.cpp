@@ -1,64 +1,14 @@
-// Dynamic activation quantization with packed output (docs/numerics.md, section 2).
+// Dynamic activation quantization with packed output (docs/numerics.md, section 2): the kernel of the
+// path that cpu/cpu_isa.h chose for this CPU (the quantizer itself: activation/act_quant_cpu_row.h).
 #include "activation/act_quant_cpu.h"
 
-#include <vector>
-
-#include "activation/act_quant_cpu_row.h"
-#include "common/precision.h"
-#include "parallel/parallel.h"
+#include "cpu/cpu_isa.h"
 
 namespace dyq::cpu {
-namespace {
-
-constexpr int64_t kRowGrain = 4;
-
-// The canonical packed layout: code i of each byte in bits [i * b, (i + 1) * b).
-template <int kBits>
-void pack_codes(const uint8_t* codes, int64_t count, uint8_t* packed) {
-  constexpr int kCodesPerByte = ActivationTraits<kBits>::kCodesPerByte;
-  for (int64_t byte = 0; byte < count / kCodesPerByte; ++byte) {
-    uint32_t packed_byte = 0;
-    for (int i = 0; i < kCodesPerByte; ++i) packed_byte |= uint32_t{codes[byte * kCodesPerByte + i]} << (i * kBits);
-    packed[byte] = static_cast<uint8_t>(packed_byte);
-  }
-}
-
-template <int kBits, typename Element>
-void quantize_rows(const Element* x, int64_t m, int64_t k, int group_size, uint8_t* packed, float* scales,
-                   uint8_t* zeros) {
-  const int64_t groups = group_count(k, group_size);
-  const int64_t packed_row_bytes = packed_activation_bytes(k, kBits);
-  parallel_for(0, m, kRowGrain, [&](int64_t row_begin, int64_t row_end) {
-    std::vector<float> row_fp32(k);
-    std::vector<uint8_t> codes(k);
-    std::vector<ActivationGroupParams> params(groups);
-    for (int64_t row = row_begin; row < row_end; ++row) {
-      quantize_activation_row(x + row * k, k, group_size, kBits, row_fp32.data(), codes.data(), params.data());
-      pack_codes<kBits>(codes.data(), k, packed + row * packed_row_bytes);
-      for (int64_t g = 0; g < groups; ++g) {
-        scales[row * groups + g] = params[g].scale;
-        zeros[row * groups + g] = static_cast<uint8_t>(params[g].zero);
-      }
-    }
-  });
-}
-
-}  // namespace
 
 void quantize_activations(const void* x, ScalarType dtype, int64_t m, int64_t k, int group_size, int act_bits,
                           uint8_t* packed, float* scales, uint8_t* zeros) {
-  dispatch_element_type(dtype, [&](auto element) {
-    using Element = decltype(element);
-    dispatch_act_bits(
-        act_bits,
-        [&](auto bits) {
-          constexpr int kBits = decltype(bits)::value;
-          if constexpr (ActivationTraits<kBits>::kQuantized) {
-            quantize_rows<kBits>(static_cast<const Element*>(x), m, k, group_size, packed, scales, zeros);
-          }
-        },
-        [] {});
-  });
+  active_cpu_path().kernels->quantize_activations(x, dtype, m, k, group_size, act_bits, packed, scales, zeros);
 }
 
 }  // namespace dyq::cpu

@@ -1,10 +1,11 @@
 // Quantization of one activation row (docs/numerics.md, section 2): the one CPU quantizer, shared by
-// the standalone op (act_quant_cpu.cpp) and every GEMM path that fuses it (gemm_cpu.cpp,
-// gemm_cpu_avx512.h). Each caller only lays the codes out its own way (packed, centered, even/odd).
+// the standalone op and every GEMM path that fuses it (cpu/kernel_entries.h, gemm/gemm_cpu_*.h). Each
+// caller only lays the codes out its own way (packed, centered, even/odd).
 //
-// With AVX-512 the row is converted and quantized 16 lanes at a time; vdivps and vrndscaleps (round to
-// nearest even) are exact IEEE operations, so the codes are bit-identical to the scalar expressions of
-// common/format.h, which the build without AVX-512 uses.
+// It is compiled once per instruction set (cpu/isa_region.h): AVX-512 converts and quantizes 16 lanes at
+// a time, AVX2 8, the portable path one. vdivps and vroundps / vrndscaleps (round to nearest even) are
+// exact IEEE operations, so every path gives codes bit-identical to the scalar expressions of
+// common/format.h.
 #pragma once
 
 #include <cmath>
@@ -14,46 +15,60 @@
 
 #include "common/cpu_dtype.h"
 #include "common/format.h"
+#include "cpu/isa_region.h"
+#include "cpu/x86_ops.h"
 
-#if defined(__AVX512F__) && defined(__AVX512BW__)
-#define DYQ_ACT_QUANT_AVX512 1
-#include <immintrin.h>
+DYQ_ISA_BEGIN
+namespace dyq::cpu::DYQ_ISA_NAMESPACE {
+
+#if defined(DYQ_CPU_ISA_AVX512)
+inline __m512 load_fp32_lanes(const float* x) { return _mm512_loadu_ps(x); }
+template <typename Element>
+__m512 load_fp32_lanes(const Element* x) {
+  const __m256i halves = _mm256_loadu_si256(reinterpret_cast<const __m256i*>(x));
+  if constexpr (std::is_same_v<Element, Eigen::bfloat16>) {
+    return _mm512_castsi512_ps(slli_epi32(cvtepu16_epi32(halves), 16));
+  } else {
+    return cvtph_ps(halves);
+  }
+}
+#elif defined(DYQ_CPU_ISA_AVX2)
+inline __m256 load_fp32_lanes(const float* x) { return _mm256_loadu_ps(x); }
+template <typename Element>
+__m256 load_fp32_lanes(const Element* x) {
+  const __m128i halves = _mm_loadu_si128(reinterpret_cast<const __m128i*>(x));
+  if constexpr (std::is_same_v<Element, Eigen::bfloat16>) {
+    return _mm256_castsi256_ps(_mm256_slli_epi32(_mm256_cvtepu16_epi32(halves), 16));
+  } else {
+    return _mm256_cvtph_ps(halves);
+  }
+}
 #endif
 
-namespace dyq::cpu {
-
-// x converted to fp32 (any k).
+// x converted to fp32 (any k: the vector loop covers whole lanes, the rest is converted one by one).
 template <typename Element>
 void load_row_fp32(const Element* x, int64_t k, float* out) {
   if constexpr (std::is_same_v<Element, float>) {
     std::memcpy(out, x, k * sizeof(float));
   } else {
     int64_t i = 0;
-#if defined(DYQ_ACT_QUANT_AVX512)
-    const auto* bits = reinterpret_cast<const uint16_t*>(x);
-    for (; i + 16 <= k; i += 16) {
-      const __m256i halves = _mm256_loadu_si256(reinterpret_cast<const __m256i*>(bits + i));
-      __m512 values;
-      if constexpr (std::is_same_v<Element, Eigen::bfloat16>) {
-        values = _mm512_castsi512_ps(_mm512_slli_epi32(_mm512_cvtepu16_epi32(halves), 16));
-      } else {
-        values = _mm512_cvtph_ps(halves);
-      }
-      _mm512_storeu_ps(out + i, values);
-    }
+#if defined(DYQ_CPU_ISA_AVX512)
+    for (; i + 16 <= k; i += 16) _mm512_storeu_ps(out + i, load_fp32_lanes(x + i));
+#elif defined(DYQ_CPU_ISA_AVX2)
+    for (; i + 8 <= k; i += 8) _mm256_storeu_ps(out + i, load_fp32_lanes(x + i));
 #endif
     for (; i < k; ++i) out[i] = to_float(x[i]);
   }
 }
 
+#if defined(DYQ_CPU_ISA_AVX512)
 // Codes q_x of one group of `columns` fp32 values (a full group, or the remainder at the end of a row);
-// returns the group's (s_x, z_x).
+// returns the group's (s_x, z_x). Lanes past `columns` load as 0, which changes neither the range (it
+// always holds 0) nor finiteness, and are not stored.
 inline ActivationGroupParams quantize_group(const float* v, int64_t columns, int act_bits, uint8_t* codes) {
-#if defined(DYQ_ACT_QUANT_AVX512)
-  // Lanes past `columns` load as 0, which changes neither the range (it always holds 0) nor finiteness.
   auto lanes = [&](int64_t i) {
     const int64_t rest = columns - i;
-    return rest >= 16 ? static_cast<__mmask16>(0xFFFF) : static_cast<__mmask16>((1u << rest) - 1);
+    return rest >= 16 ? kAll16 : static_cast<__mmask16>((1u << rest) - 1);
   };
   const __m512 zero = _mm512_setzero_ps();
   __m512 group_min = zero, group_max = zero;
@@ -61,11 +76,11 @@ inline ActivationGroupParams quantize_group(const float* v, int64_t columns, int
   for (int64_t i = 0; i < columns; i += 16) {
     const __m512 values = _mm512_maskz_loadu_ps(lanes(i), v + i);
     nonfinite |= _mm512_cmp_ps_mask(_mm512_sub_ps(values, values), zero, _CMP_NEQ_UQ);  // NaN or Inf
-    group_min = _mm512_min_ps(group_min, values);
-    group_max = _mm512_max_ps(group_max, values);
+    group_min = min_ps(group_min, values);
+    group_max = max_ps(group_max, values);
   }
-  const ActivationGroupParams params = activation_group_params(_mm512_reduce_min_ps(group_min),
-                                                               _mm512_reduce_max_ps(group_max), act_bits, nonfinite != 0);
+  const ActivationGroupParams params = activation_group_params(reduce_lanes<MinLanes>(group_min),
+                                                               reduce_lanes<MaxLanes>(group_max), act_bits, nonfinite != 0);
   if (nonfinite != 0) {
     std::memset(codes, 0, columns);
     return params;
@@ -75,12 +90,59 @@ inline ActivationGroupParams quantize_group(const float* v, int64_t columns, int
   const __m512 zero_point = _mm512_set1_ps(static_cast<float>(params.zero));
   for (int64_t i = 0; i < columns; i += 16) {
     const __m512 ratio = _mm512_div_ps(_mm512_maskz_loadu_ps(lanes(i), v + i), scale);
-    const __m512 rounded = _mm512_roundscale_ps(ratio, _MM_FROUND_TO_NEAREST_INT | _MM_FROUND_NO_EXC);
-    const __m512 code = _mm512_min_ps(_mm512_max_ps(_mm512_add_ps(rounded, zero_point), zero), levels);
-    _mm512_mask_cvtepi32_storeu_epi8(codes + i, lanes(i), _mm512_cvtps_epi32(code));
+    const __m512 rounded = round_nearest_ps(ratio);
+    const __m512 code = min_ps(max_ps(_mm512_add_ps(rounded, zero_point), zero), levels);
+    _mm512_mask_cvtepi32_storeu_epi8(codes + i, lanes(i), cvtps_epi32(code));
   }
   return params;
+}
+#elif defined(DYQ_CPU_ISA_AVX2)
+// As above, 8 lanes at a time; the lanes past `columns` load as 0 (vmaskmovps) and are not stored.
+inline ActivationGroupParams quantize_group(const float* v, int64_t columns, int act_bits, uint8_t* codes) {
+  auto load = [&](int64_t i) {
+    const int64_t rest = columns - i;
+    if (rest >= 8) return _mm256_loadu_ps(v + i);
+    const __m256i lane = _mm256_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7);
+    return _mm256_maskload_ps(v + i, _mm256_cmpgt_epi32(_mm256_set1_epi32(static_cast<int>(rest)), lane));
+  };
+  const __m256 zero = _mm256_setzero_ps();
+  __m256 group_min = zero, group_max = zero, nonfinite = zero;
+  for (int64_t i = 0; i < columns; i += 8) {
+    const __m256 values = load(i);
+    nonfinite = _mm256_or_ps(nonfinite, _mm256_cmp_ps(_mm256_sub_ps(values, values), zero, _CMP_NEQ_UQ));
+    group_min = _mm256_min_ps(group_min, values);
+    group_max = _mm256_max_ps(group_max, values);
+  }
+  const bool any_nonfinite = _mm256_movemask_ps(nonfinite) != 0;
+  const ActivationGroupParams params =
+      activation_group_params(reduce_lanes<MinLanes>(group_min),
+                              reduce_lanes<MaxLanes>(group_max), act_bits,
+                              any_nonfinite);
+  if (any_nonfinite) {
+    std::memset(codes, 0, columns);
+    return params;
+  }
+  const __m256 levels = _mm256_set1_ps(static_cast<float>((1 << act_bits) - 1));
+  const __m256 scale = _mm256_set1_ps(params.scale);
+  const __m256 zero_point = _mm256_set1_ps(static_cast<float>(params.zero));
+  for (int64_t i = 0; i < columns; i += 8) {
+    const __m256 ratio = _mm256_div_ps(load(i), scale);
+    const __m256 rounded = _mm256_round_ps(ratio, _MM_FROUND_TO_NEAREST_INT | _MM_FROUND_NO_EXC);
+    const __m256i code = _mm256_cvtps_epi32(_mm256_min_ps(_mm256_max_ps(_mm256_add_ps(rounded, zero_point), zero), levels));
+    const __m128i words = _mm_packus_epi32(_mm256_castsi256_si128(code), _mm256_extracti128_si256(code, 1));
+    const __m128i bytes = _mm_packus_epi16(words, words);
+    if (columns - i >= 8) {
+      _mm_storel_epi64(reinterpret_cast<__m128i*>(codes + i), bytes);
+    } else {
+      alignas(16) uint8_t tail[16];
+      _mm_store_si128(reinterpret_cast<__m128i*>(tail), bytes);
+      std::memcpy(codes + i, tail, columns - i);
+    }
+  }
+  return params;
+}
 #else
+inline ActivationGroupParams quantize_group(const float* v, int64_t columns, int act_bits, uint8_t* codes) {
   float group_min = 0.0f;
   float group_max = 0.0f;
   bool nonfinite = false;
@@ -92,8 +154,8 @@ inline ActivationGroupParams quantize_group(const float* v, int64_t columns, int
   const ActivationGroupParams params = activation_group_params(group_min, group_max, act_bits, nonfinite);
   for (int64_t i = 0; i < columns; ++i) codes[i] = static_cast<uint8_t>(activation_code(v[i], params, act_bits));
   return params;
-#endif
 }
+#endif
 
 // Quantizes the k values of `x`: codes[0..k) receive the unsigned codes q_x, params[0..ceil(k/group_size))
 // each group's (s_x, z_x), the last group holding the remainder when group_size does not divide k.
@@ -108,4 +170,5 @@ void quantize_activation_row(const Element* x, int64_t k, int group_size, int ac
   }
 }
 
-}  // namespace dyq::cpu
+}  // namespace dyq::cpu::DYQ_ISA_NAMESPACE
+DYQ_ISA_END

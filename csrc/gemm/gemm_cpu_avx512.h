@@ -17,14 +17,8 @@
 // the same numbers (zeros change neither a group's range nor its sums; docs/numerics.md, section 4).
 #pragma once
 
-#if defined(__AVX512F__) && defined(__AVX512BW__) && defined(__AVX512VNNI__) && defined(__AVX512VBMI__)
-#define DYQ_GEMM_AVX512 1
-
-#include <immintrin.h>
-
-#include <new>
-
 #include <algorithm>
+#include <new>
 #include <cstring>
 #include <type_traits>
 #include <utility>
@@ -34,14 +28,16 @@
 #include "common/cpu_dtype.h"
 #include "common/format.h"
 #include "common/precision.h"
+#include "cpu/isa_region.h"
+#include "cpu/x86_ops.h"
 #include "parallel/parallel.h"
 
+DYQ_ISA_BEGIN
 namespace dyq::cpu::avx512 {
 
 constexpr int64_t kBlockColumns = 128;  // columns in 64 bytes of packed weights
 constexpr int64_t kChunkColumns = 32;   // act_bits 16: columns in 16 bytes of packed weights
 constexpr int kMaxTileRows = 8;         // activation rows that share one pass over a weight row
-constexpr int64_t kWeightRowsPerBlock = 16;
 // From this many activation rows on, the panel path (measured crossover between 8 and 16 rows).
 constexpr int64_t kPanelMinRows = 12;
 
@@ -137,7 +133,7 @@ std::vector<float> deinterleave_activations(const Element* x, int64_t m, int64_t
 inline void split_weight_nibbles(__m512i packed, __m512i& even, __m512i& odd) {
   const __m512i low_nibbles = _mm512_set1_epi8(0x0F);
   const __m512i nibble_values =
-      _mm512_broadcast_i32x4(_mm_setr_epi8(0, 1, 2, 3, 4, 5, 6, 7, -8, -7, -6, -5, -4, -3, -2, -1));
+      broadcast_i32x4(_mm_setr_epi8(0, 1, 2, 3, 4, 5, 6, 7, -8, -7, -6, -5, -4, -3, -2, -1));
   even = _mm512_shuffle_epi8(nibble_values, _mm512_and_si512(packed, low_nibbles));
   odd = _mm512_shuffle_epi8(nibble_values, _mm512_and_si512(_mm512_srli_epi16(packed, 4), low_nibbles));
 }
@@ -151,8 +147,8 @@ void quantized_row_kernel(const uint8_t* weight_row, const float* scales_row, in
   const int64_t groups_per_block = kBlockColumns / group_size;
   const __m512i ones = _mm512_set1_epi8(1);
   // Lane i covers columns 8i..8i+7 of the block: group i * 8 / group_size of it.
-  const __m512i lane_group = _mm512_srli_epi32(
-      _mm512_slli_epi32(_mm512_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15), 3),
+  const __m512i lane_group = srli_epi32(
+      slli_epi32(_mm512_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15), 3),
       __builtin_ctz(group_size));
   __m512 acc[kRows];
   for (int r = 0; r < kRows; ++r) acc[r] = _mm512_setzero_ps();
@@ -164,9 +160,9 @@ void quantized_row_kernel(const uint8_t* weight_row, const float* scales_row, in
         full ? (1u << groups_per_block) - 1 : (1u << group_count(tail_columns, group_size)) - 1;
     __m512i even, odd;
     split_weight_nibbles(_mm512_maskz_loadu_epi8(byte_mask, weight_row + t * (kBlockColumns / 2)), even, odd);
-    const __m512 weight_sums = _mm512_cvtepi32_ps(
+    const __m512 weight_sums = cvtepi32_ps(
         _mm512_dpbusd_epi32(_mm512_dpbusd_epi32(_mm512_setzero_si512(), ones, even), ones, odd));
-    const __m512 weight_scales = _mm512_permutexvar_ps(
+    const __m512 weight_scales = permutexvar_ps(
         lane_group, _mm512_maskz_loadu_ps(scale_mask, scales_row + t * groups_per_block));
     for (int r = 0; r < kRows; ++r) {
       const QuantizedBlock& block = rows[r][t];
@@ -174,11 +170,11 @@ void quantized_row_kernel(const uint8_t* weight_row, const float* scales_row, in
           _mm512_dpbusd_epi32(_mm512_setzero_si512(), _mm512_load_si512(block.even_codes), even),
           _mm512_load_si512(block.odd_codes), odd);
       // P = sum q_x q_w - z_x sum q_w, exact in fp32 (integers below 2^24).
-      const __m512 partial = _mm512_fnmadd_ps(weight_sums, _mm512_load_ps(block.zero_lanes), _mm512_cvtepi32_ps(dot));
+      const __m512 partial = _mm512_fnmadd_ps(weight_sums, _mm512_load_ps(block.zero_lanes), cvtepi32_ps(dot));
       acc[r] = _mm512_fmadd_ps(partial, _mm512_mul_ps(weight_scales, _mm512_load_ps(block.scale_lanes)), acc[r]);
     }
   }
-  for (int r = 0; r < kRows; ++r) sums[r] = _mm512_reduce_add_ps(acc[r]);
+  for (int r = 0; r < kRows; ++r) sums[r] = reduce_lanes<AddLanes>(acc[r]);
 }
 
 template <int kRows>
@@ -200,10 +196,10 @@ void fp32_row_kernel(const uint8_t* weight_row, const float* scales_row, int64_t
         std::memcpy(tail, weight_row + c / 2, (k - c) / 2);
         packed = _mm_load_si128(reinterpret_cast<const __m128i*>(tail));
       }
-      const __m512i bytes = _mm512_cvtepu8_epi32(packed);
+      const __m512i bytes = cvtepu8_epi32(packed);
       // vpermps reads only the low 4 bits of each index: the low nibble, then the high one shifted down.
-      const __m512 even = _mm512_permutexvar_ps(bytes, code_values);
-      const __m512 odd = _mm512_permutexvar_ps(_mm512_srli_epi32(bytes, 4), code_values);
+      const __m512 even = permutexvar_ps(bytes, code_values);
+      const __m512 odd = permutexvar_ps(srli_epi32(bytes, 4), code_values);
       for (int r = 0; r < kRows; ++r) {
         group_acc[r] = _mm512_fmadd_ps(even, _mm512_loadu_ps(rows[r] + c), group_acc[r]);
         group_acc[r] = _mm512_fmadd_ps(odd, _mm512_loadu_ps(rows[r] + c + 16), group_acc[r]);
@@ -212,43 +208,10 @@ void fp32_row_kernel(const uint8_t* weight_row, const float* scales_row, int64_t
     const __m512 scale = _mm512_set1_ps(scales_row[g]);
     for (int r = 0; r < kRows; ++r) acc[r] = _mm512_fmadd_ps(group_acc[r], scale, acc[r]);
   }
-  for (int r = 0; r < kRows; ++r) sums[r] = _mm512_reduce_add_ps(acc[r]);
+  for (int r = 0; r < kRows; ++r) sums[r] = reduce_lanes<AddLanes>(acc[r]);
 }
 
-// Calls fn(std::integral_constant<int, rows>) for a runtime rows in [1, kMaxTileRows].
-template <int kMax = kMaxTileRows, typename Fn>
-void dispatch_tile_rows(int rows, Fn&& fn) {
-  if constexpr (kMax > 1) {
-    if (rows < kMax) return dispatch_tile_rows<kMax - 1>(rows, fn);
-  }
-  fn(std::integral_constant<int, kMax>());
-}
-
-// Runs row_kernel over tiles of activation rows for each weight row, threads splitting the weight rows.
-template <typename Element, typename ActivationRow, typename RowKernel>
-void run_tiles(const uint8_t* qweight, const float* scales, const Element* bias, int64_t m, int64_t n, int64_t k,
-               int group_size, Element* out, ActivationRow&& activation_row, RowKernel&& row_kernel) {
-  const int64_t groups = group_count(k, group_size);
-  parallel_for(0, n, kWeightRowsPerBlock, [&](int64_t col_begin, int64_t col_end) {
-    for (int64_t block_begin = col_begin; block_begin < col_end; block_begin += kWeightRowsPerBlock) {
-      const int64_t block_end = std::min(block_begin + kWeightRowsPerBlock, col_end);
-      for (int64_t row_begin = 0; row_begin < m; row_begin += kMaxTileRows) {
-        const int rows = static_cast<int>(std::min<int64_t>(kMaxTileRows, m - row_begin));
-        dispatch_tile_rows(rows, [&](auto tile_rows) {
-          constexpr int kRows = decltype(tile_rows)::value;
-          decltype(activation_row(0)) tile[kRows];
-          for (int r = 0; r < kRows; ++r) tile[r] = activation_row(row_begin + r);
-          float sums[kRows];
-          for (int64_t col = block_begin; col < block_end; ++col) {
-            row_kernel(tile_rows, qweight + col * (k / 2), scales + col * groups, tile, sums);
-            const float bias_value = bias != nullptr ? to_float(bias[col]) : 0.0f;
-            for (int r = 0; r < kRows; ++r) out[(row_begin + r) * n + col] = from_float<Element>(sums[r] + bias_value);
-          }
-        });
-      }
-    }
-  });
-}
+#include "gemm/gemm_cpu_row_tiles.inc"
 
 // ---- panel path for many activation rows -------------------------------------------------------
 //
@@ -324,20 +287,20 @@ struct WeightPanel {
       for (int64_t quad = g * group_size / 4; quad < (g + 1) * group_size / 4; ++quad) {
         for (int h = 0; h < 2; ++h) {
           const __m512i offsets = h == 0 ? column_offsets : _mm512_add_epi32(column_offsets, half_offset);
-          const __m512i four_codes = _mm512_i32gather_epi32(offsets, row_codes.data() + 4 * quad, 1);
+          const __m512i four_codes = i32gather_epi32(offsets, row_codes.data() + 4 * quad);
           if constexpr (kQuantized) {
             _mm512_store_si512(steps.data() + quad * kPanelColumns + 16 * h, four_codes);
             sums[h] = _mm512_dpbusd_epi32(sums[h], ones, four_codes);
           } else {
             for (int b = 0; b < 4; ++b) {
-              const __m512i code = _mm512_srai_epi32(_mm512_slli_epi32(four_codes, 24 - 8 * b), 24);
-              _mm512_store_ps(steps.data() + (4 * quad + b) * kPanelColumns + 16 * h, _mm512_cvtepi32_ps(code));
+              const __m512i code = srai_epi32(slli_epi32(four_codes, 24 - 8 * b), 24);
+              _mm512_store_ps(steps.data() + (4 * quad + b) * kPanelColumns + 16 * h, cvtepi32_ps(code));
             }
           }
         }
       }
       for (int h = 0; h < 2; ++h) {
-        _mm512_storeu_ps(&weight_sums[g * kPanelColumns + 16 * h], _mm512_cvtepi32_ps(sums[h]));
+        _mm512_storeu_ps(&weight_sums[g * kPanelColumns + 16 * h], cvtepi32_ps(sums[h]));
       }
     }
   }
@@ -435,7 +398,7 @@ void panel_kernel(const WeightPanel<kQuantized>& panel, const PanelActivations<k
           const int64_t at = (row_begin + r) * groups + group;
           // P = sum q_x q_w - z_x sum q_w, exact in fp32 (integers below 2^24).
           const __m512 partial =
-              _mm512_fnmadd_ps(weight_sums, _mm512_set1_ps(activations.zeros[at]), _mm512_cvtepi32_ps(acc[r][h]));
+              _mm512_fnmadd_ps(weight_sums, _mm512_set1_ps(activations.zeros[at]), cvtepi32_ps(acc[r][h]));
           float* total = totals + r * kPanelColumns + 16 * h;
           const __m512 scale = _mm512_mul_ps(weight_scales, _mm512_set1_ps(activations.scales[at]));
           _mm512_storeu_ps(total, _mm512_fmadd_ps(partial, scale, _mm512_loadu_ps(total)));
@@ -483,8 +446,8 @@ void run_panels(const PanelActivations<kQuantized>& activations, const uint8_t* 
 }
 
 template <int kBits, typename Element>
-void gemm(const Element* x, const uint8_t* qweight, const float* scales, const Element* bias, int64_t m, int64_t n,
-          int64_t k, int group_size, Element* out);
+void gemm_typed(const Element* x, const uint8_t* qweight, const float* scales, const Element* bias, int64_t m, int64_t n,
+                int64_t k, int group_size, Element* out);
 
 // The panel path for a k that group_size does not divide: x and the weights copied with zero columns up
 // to whole groups (the scales already have one entry per group, the last one for the remainder).
@@ -500,12 +463,12 @@ void gemm_panels_padded(const Element* x, const uint8_t* qweight, const float* s
       if (r < n) std::memcpy(qweight_padded.data() + r * padded / 2, qweight + r * k / 2, k / 2);
     }
   });
-  gemm<kBits>(x_padded.data(), qweight_padded.data(), scales, bias, m, n, padded, group_size, out);
+  gemm_typed<kBits>(x_padded.data(), qweight_padded.data(), scales, bias, m, n, padded, group_size, out);
 }
 
 template <int kBits, typename Element>
-void gemm(const Element* x, const uint8_t* qweight, const float* scales, const Element* bias, int64_t m, int64_t n,
-          int64_t k, int group_size, Element* out) {
+void gemm_typed(const Element* x, const uint8_t* qweight, const float* scales, const Element* bias, int64_t m, int64_t n,
+                int64_t k, int group_size, Element* out) {
   constexpr bool kQuantized = ActivationTraits<kBits>::kQuantized;
   if (m >= kPanelMinRows && k % group_size != 0) {
     gemm_panels_padded<kBits>(x, qweight, scales, bias, m, n, k, group_size, out);
@@ -519,7 +482,7 @@ void gemm(const Element* x, const uint8_t* qweight, const float* scales, const E
   } else if constexpr (kQuantized) {
     const int64_t blocks = (k + kBlockColumns - 1) / kBlockColumns;
     const std::vector<QuantizedBlock> activations = quantize_activation_blocks(x, m, k, group_size, kBits);
-    run_tiles(
+    run_tiles<kMaxTileRows>(
         qweight, scales, bias, m, n, k, group_size, out, [&](int64_t r) { return activations.data() + r * blocks; },
         [&](auto tile_rows, const uint8_t* weight_row, const float* scales_row, const QuantizedBlock* const* rows,
             float* sums) {
@@ -528,7 +491,7 @@ void gemm(const Element* x, const uint8_t* qweight, const float* scales, const E
   } else {
     const std::vector<float> activations = deinterleave_activations(x, m, k);
     const int64_t pitch = chunk_padded(k);
-    run_tiles(
+    run_tiles<kMaxTileRows>(
         qweight, scales, bias, m, n, k, group_size, out, [&](int64_t r) { return activations.data() + r * pitch; },
         [&](auto tile_rows, const uint8_t* weight_row, const float* scales_row, const float* const* rows, float* sums) {
           fp32_row_kernel<decltype(tile_rows)::value>(weight_row, scales_row, k, group_size, rows, sums);
@@ -537,5 +500,4 @@ void gemm(const Element* x, const uint8_t* qweight, const float* scales, const E
 }
 
 }  // namespace dyq::cpu::avx512
-
-#endif
+DYQ_ISA_END

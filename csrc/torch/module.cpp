@@ -1,9 +1,12 @@
 // `import dyq._C` loads this library, whose static initializers register the dyq ops with torch. The
-// module also carries the precision registry (common/precision.h) for Python, and the GEMM width
-// counters (torch/width_counts.h).
+// module also carries the precision registry (common/precision.h) for Python, the GEMM width
+// counters (torch/width_counts.h) and the CPU path the kernels run (cpu/cpu_isa.h).
 #include <Python.h>
 
+#include <stdexcept>
+
 #include "common/precision.h"
+#include "cpu/cpu_isa.h"
 #include "torch/width_counts.h"
 
 namespace {
@@ -40,7 +43,27 @@ PyObject* reset_gemm_width_counts(PyObject*, PyObject*) {
   Py_RETURN_NONE;
 }
 
+// (active path, the paths this CPU can execute, the paths compiled in), each by its DYQ_CPU_ISA name.
+PyObject* cpu_isa(PyObject*, PyObject*) {
+  const char* active = nullptr;
+  try {
+    active = dyq::cpu::active_cpu_path().name;
+  } catch (const std::invalid_argument& error) {
+    PyErr_SetString(PyExc_ValueError, error.what());
+    return nullptr;
+  }
+  const auto runnable = dyq::cpu::runnable_cpu_paths();
+  const auto& compiled = dyq::cpu::cpu_paths();
+  PyObject* runnable_names = PyTuple_New(static_cast<Py_ssize_t>(runnable.size()));
+  for (size_t i = 0; i < runnable.size(); ++i) PyTuple_SET_ITEM(runnable_names, i, PyUnicode_FromString(runnable[i]->name));
+  PyObject* compiled_names = PyTuple_New(static_cast<Py_ssize_t>(compiled.size()));
+  for (size_t i = 0; i < compiled.size(); ++i) PyTuple_SET_ITEM(compiled_names, i, PyUnicode_FromString(compiled[i].name));
+  return Py_BuildValue("(sNN)", active, runnable_names, compiled_names);
+}
+
 PyMethodDef methods[] = {
+    {"cpu_isa", cpu_isa, METH_NOARGS,
+     "(active CPU path, paths this CPU can execute, paths compiled in), by their DYQ_CPU_ISA names."},
     {"gemm_width_counts", gemm_width_counts, METH_NOARGS,
      "GEMM calls of this process per registered activation width, in the order of ACTIVATION_BITS."},
     {"reset_gemm_width_counts", reset_gemm_width_counts, METH_NOARGS, "Set every GEMM width count to 0."},

@@ -33,6 +33,7 @@ def environment() -> dict:
 
     env = {
         "cpu": cpu_name(),
+        "cpu_isa": dyq.cpu_info()["isa"],
         "cores": os.cpu_count(),
         "torch_threads": torch.get_num_threads(),
         "python": platform.python_version(),

@@ -1,4 +1,5 @@
-// Activation quantization against the naive loops of docs/numerics.md, section 2.
+// Activation quantization (every CPU path this machine can execute) against the naive loops of
+// docs/numerics.md, section 2.
 #include <gtest/gtest.h>
 
 #include <cmath>
@@ -6,6 +7,7 @@
 #include <tuple>
 
 #include "activation/act_quant_cpu.h"
+#include "cpu/cpu_isa.h"
 #include "naive_reference.h"
 
 namespace {
@@ -25,6 +27,16 @@ Quantized quantize(const std::vector<Element>& x, ScalarType dtype, int64_t m, i
               std::vector<uint8_t>(m * k / group_size)};
   dyq::cpu::quantize_activations(x.data(), dtype, m, k, group_size, act_bits, q.packed.data(), q.scales.data(),
                                  q.zeros.data());
+  // Every path quantizes bit for bit alike.
+  for (const auto* path : dyq::cpu::runnable_cpu_paths()) {
+    Quantized other{std::vector<uint8_t>(q.packed.size()), std::vector<float>(q.scales.size()),
+                    std::vector<uint8_t>(q.zeros.size())};
+    path->kernels->quantize_activations(x.data(), dtype, m, k, group_size, act_bits, other.packed.data(),
+                                        other.scales.data(), other.zeros.data());
+    EXPECT_EQ(other.packed, q.packed) << path->name;
+    EXPECT_EQ(std::memcmp(other.scales.data(), q.scales.data(), q.scales.size() * sizeof(float)), 0) << path->name;
+    EXPECT_EQ(other.zeros, q.zeros) << path->name;
+  }
   return q;
 }
 

@@ -1,5 +1,5 @@
-// The GEMM (every implementation behind dyq::cpu::gemm) against a double-precision naive GEMM on the
-// codes of docs/numerics.md, section 3.
+// The GEMM (dyq::cpu::gemm and every CPU path this machine can execute) against a double-precision naive
+// GEMM on the codes of docs/numerics.md, section 3.
 #include <gtest/gtest.h>
 
 #include <cmath>
@@ -8,8 +8,8 @@
 #include <string>
 #include <tuple>
 
+#include "cpu/cpu_isa.h"
 #include "gemm/gemm_cpu.h"
-#include "gemm/gemm_cpu_paths.h"
 #include "naive_reference.h"
 #include "weight/weight_pack_cpu.h"
 
@@ -25,7 +25,11 @@ struct Implementation {
 };
 
 const std::vector<Implementation>& implementations() {
-  static const std::vector<Implementation> all = {{"gemm", dyq::cpu::gemm}, {"portable", dyq::cpu::gemm_portable}};
+  static const std::vector<Implementation> all = [] {
+    std::vector<Implementation> list = {{"gemm", dyq::cpu::gemm}};
+    for (const auto* path : dyq::cpu::runnable_cpu_paths()) list.push_back({path->name, path->kernels->gemm});
+    return list;
+  }();
   return all;
 }
 

@@ -15,13 +15,14 @@ import argparse
 import json
 import math
 import os
-import sys
 import warnings
+import zipfile
 
 import numpy as np
 
 from ..control.dispatch import TRACE_FIELDS, DispatchConfig, KinematicDispatcher, replay_trajectory, synthetic_trajectory
 from ..core.precision import VALID_BITS
+from .usage import UsageError, input_file, output_file, positive_int, require
 
 
 def load_trajectory(path: str | os.PathLike, key: str | None = None) -> np.ndarray:
@@ -120,11 +121,25 @@ def plot_trace(trace: dict[str, np.ndarray], config: DispatchConfig, path: str |
     plt.close(fig)
 
 
-def _replay(args: argparse.Namespace) -> int:
-    config = DispatchConfig.load(args.config) if args.config else DispatchConfig()
+def _read_inputs(args: argparse.Namespace) -> tuple[DispatchConfig, np.ndarray]:
+    """The config and trajectory that ``replay`` names; a file that does not parse is a UsageError."""
+    try:
+        config = DispatchConfig.load(args.config) if args.config else DispatchConfig()
+    except (ValueError, TypeError, KeyError) as error:
+        raise UsageError(f"{args.config}: not a DispatchConfig JSON ({error})") from None
+    try:
+        actions = load_trajectory(args.trajectory, args.key)
+    except (zipfile.BadZipFile, EOFError, OSError, ValueError) as error:
+        raise UsageError(f"{args.trajectory}: not a readable trajectory ({error})") from None
     if args.input is not None:
         config = config.replace(input=args.input)
-    actions = load_trajectory(args.trajectory, args.key)
+    return config, actions
+
+
+def _replay(args: argparse.Namespace) -> int:
+    if args.out:
+        require("matplotlib", "--out (the plot)")
+    config, actions = _read_inputs(args)
     trace = replay_trajectory(actions, KinematicDispatcher(config))
     summary = summarize(trace)
     print(f"trajectory     {args.trajectory}  shape {actions.shape}")
@@ -161,28 +176,24 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     tools = parser.add_subparsers(dest="tool", required=True)
 
     replay = tools.add_parser("replay", help="run a recorded trajectory through the dispatcher")
-    replay.add_argument("trajectory", help=".npz or .csv, one row per control step")
-    replay.add_argument("--config", help="DispatchConfig JSON (default: built-in defaults)")
+    replay.add_argument("trajectory", type=input_file(".npz", ".csv"), help=".npz or .csv, one row per control step")
+    replay.add_argument("--config", type=input_file(".json"), help="DispatchConfig JSON (default: built-in defaults)")
     replay.add_argument("--key", help="array name inside an .npz (default: 'actions' or the only array)")
     replay.add_argument("--input", choices=("action", "pose"), help="override the config's input kind")
-    replay.add_argument("--out", help="write a PNG of M~, J~, S_t and the bits")
-    replay.add_argument("--json", help="write the config, summary and per-step trace as JSON")
+    replay.add_argument("--out", type=output_file(".png"), help="write a PNG of M~, J~, S_t and the bits")
+    replay.add_argument("--json", type=output_file(".json"), help="write the config, summary and per-step trace as JSON")
     replay.set_defaults(run=_replay)
 
     demo = tools.add_parser("demo", help="write a synthetic 7-D action trajectory (.npz)")
-    demo.add_argument("output")
-    demo.add_argument("--steps", type=int, default=240)
+    demo.add_argument("output", type=output_file(".npz"))
+    demo.add_argument("--steps", type=positive_int, default=240)
     demo.add_argument("--seed", type=int, default=0)
     demo.set_defaults(run=_demo)
 
     config = tools.add_parser("config", help="write the default DispatchConfig as JSON")
-    config.add_argument("output")
+    config.add_argument("output", type=output_file(".json"))
     config.set_defaults(run=_config)
 
 
 def main(args: argparse.Namespace) -> int:
-    try:
-        return args.run(args)
-    except (OSError, ValueError, TypeError) as err:
-        print(f"error: {err}", file=sys.stderr)
-        return 2
+    return args.run(args)

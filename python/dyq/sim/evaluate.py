@@ -262,16 +262,18 @@ def default_checkpoint(task: str) -> Path:
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
+    from ..apps.usage import output_dir, output_file, positive_int
+
     parser.add_argument("--tasks", default="lift,pick_place_can,square", help="comma-separated task names")
     parser.add_argument("--configs", default="fp32,w4a16,w4a8,w4a4,w4a2,dyq", help="comma-separated configurations")
-    parser.add_argument("--episodes", type=int, default=50, help="seeds 0 .. episodes-1 per task and configuration")
+    parser.add_argument("--episodes", type=positive_int, default=50, help="seeds 0 .. episodes-1 per task and configuration")
     parser.add_argument("--checkpoint", action="append", default=[], metavar="TASK=DIR",
                         help="policy checkpoint for a task (default: the one that ships with dyq)")
-    parser.add_argument("--workers", type=int, default=max(1, (os.cpu_count() or 1)))
-    parser.add_argument("--cache", type=Path, default=DEFAULT_CACHE)
-    parser.add_argument("--out", type=Path, default=DEFAULT_OUT)
-    parser.add_argument("--table", type=Path, default=DEFAULT_TABLE)
-    parser.add_argument("--video", type=Path, default=None, metavar="DIR",
+    parser.add_argument("--workers", type=positive_int, default=max(1, (os.cpu_count() or 1)))
+    parser.add_argument("--cache", type=output_dir, default=DEFAULT_CACHE)
+    parser.add_argument("--out", type=output_file(".json"), default=DEFAULT_OUT)
+    parser.add_argument("--table", type=output_file(".md"), default=DEFAULT_TABLE)
+    parser.add_argument("--video", type=output_dir, default=None, metavar="DIR",
                         help="also record seed 0 of each task (under dyq if evaluated) as DIR/<task>_<config>_seed0.gif")
     parser.add_argument("--summarize-only", action="store_true",
                         help="run nothing: merge the episodes cached so far into the results and the table")

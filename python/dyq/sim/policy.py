@@ -28,7 +28,7 @@ CHECKPOINT_FILE = "model.safetensors"
 CONFIG_FILE = "policy.json"
 
 
-def _cache_keyword() -> str:
+def cache_keyword() -> str:
     """transformers 5 renamed the KV-cache argument and output from ``past_key_values`` to ``cache``."""
     import inspect
 
@@ -118,7 +118,7 @@ class TokenPolicy:
         self.model = model if model is not None else LlamaForCausalLM(config.llama_config())
         self.model.eval()
         self._action_slice = slice(self.vocabulary.first_action, self.vocabulary.first_action + BINS)
-        self._cache_keyword = _cache_keyword()
+        self._cache_keyword = cache_keyword()
 
     # -- one control step ---------------------------------------------------------------------
 

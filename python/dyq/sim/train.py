@@ -170,20 +170,23 @@ def load_calibration_set(checkpoint: str | Path) -> tuple[np.ndarray, np.ndarray
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
+    from ..apps.usage import input_file, nonnegative_int, output_dir, positive_float, positive_int
+
     parser.add_argument("task", help="task name (lift, pick_place_can, square)")
-    parser.add_argument("--data", required=True, help="demonstrations (HDF5, robomimic layout) from `dyq collect`")
-    parser.add_argument("--out", required=True, help="output folder for the checkpoint")
-    parser.add_argument("--steps", type=int, default=3000)
-    parser.add_argument("--batch-size", type=int, default=128)
-    parser.add_argument("--lr", type=float, default=1e-3)
-    parser.add_argument("--hidden-size", type=int, default=256)
-    parser.add_argument("--intermediate-size", type=int, default=768)
-    parser.add_argument("--layers", type=int, default=4)
-    parser.add_argument("--heads", type=int, default=4)
+    parser.add_argument("--data", required=True, type=input_file(".hdf5", ".h5"),
+                        help="demonstrations (HDF5, robomimic layout) from `dyq collect`")
+    parser.add_argument("--out", required=True, type=output_dir, help="output folder for the checkpoint")
+    parser.add_argument("--steps", type=positive_int, default=3000)
+    parser.add_argument("--batch-size", type=positive_int, default=128)
+    parser.add_argument("--lr", type=positive_float, default=1e-3)
+    parser.add_argument("--hidden-size", type=positive_int, default=256)
+    parser.add_argument("--intermediate-size", type=positive_int, default=768)
+    parser.add_argument("--layers", type=positive_int, default=4)
+    parser.add_argument("--heads", type=positive_int, default=4)
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--save-every", type=int, default=250)
-    parser.add_argument("--validation-demos", type=int, default=10)
-    parser.add_argument("--threads", type=int, default=0, help="torch threads (0: torch's default)")
+    parser.add_argument("--save-every", type=positive_int, default=250)
+    parser.add_argument("--validation-demos", type=nonnegative_int, default=10)
+    parser.add_argument("--threads", type=nonnegative_int, default=0, help="torch threads (0: torch's default)")
 
 
 def main(args: argparse.Namespace) -> int:

@@ -1,0 +1,20 @@
+# ctest script: disassembles each CPU path's object (csrc/cpu/kernels_<isa>.cpp) and fails when a path
+# other than AVX-512 uses a zmm register, or when the AVX-512 one uses none (the check would be vacuous).
+# Called with -DOBJDUMP=<objdump> -DOBJECTS=<the objects of dyq_cpu_isa_kernels, ;-separated>.
+foreach(_object IN LISTS OBJECTS)
+  get_filename_component(_name ${_object} NAME)
+  execute_process(COMMAND ${OBJDUMP} -d --no-show-raw-insn ${_object} OUTPUT_VARIABLE _asm RESULT_VARIABLE _failed)
+  if(_failed)
+    message(FATAL_ERROR "${OBJDUMP} -d ${_object} failed")
+  endif()
+  string(REGEX MATCHALL "%zmm[0-9]+" _zmm "${_asm}")
+  list(LENGTH _zmm _count)
+  if(_name MATCHES "kernels_avx512")
+    if(_count EQUAL 0)
+      message(FATAL_ERROR "${_name}: no zmm register in the AVX-512 path")
+    endif()
+  elseif(_count GREATER 0)
+    message(FATAL_ERROR "${_name}: ${_count} zmm register uses outside the AVX-512 path")
+  endif()
+  message(STATUS "${_name}: ${_count} zmm register uses")
+endforeach()

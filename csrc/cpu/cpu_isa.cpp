@@ -1,0 +1,89 @@
+// The dispatch table of cpu/cpu_isa.h.
+#include "cpu/cpu_isa.h"
+
+#include <cstdlib>
+#include <stdexcept>
+#include <string>
+
+namespace dyq::cpu {
+
+#if defined(__x86_64__)
+namespace avx512 {
+extern const CpuKernelSet kernels;
+}
+namespace avx2 {
+extern const CpuKernelSet kernels;
+}
+#endif
+namespace portable {
+extern const CpuKernelSet kernels;
+}
+
+namespace {
+
+#if defined(__x86_64__)
+// __builtin_cpu_supports also checks that the OS saves the YMM / ZMM state (XGETBV).
+bool avx512_runs_here() {
+  __builtin_cpu_init();
+  return __builtin_cpu_supports("avx512f") && __builtin_cpu_supports("avx512bw") &&
+         __builtin_cpu_supports("avx512dq") && __builtin_cpu_supports("avx512vl") &&
+         __builtin_cpu_supports("avx512vnni") && __builtin_cpu_supports("avx512vbmi");
+}
+
+bool avx2_runs_here() {
+  __builtin_cpu_init();
+  return __builtin_cpu_supports("avx2") && __builtin_cpu_supports("fma") && __builtin_cpu_supports("f16c");
+}
+#endif
+
+bool portable_runs_here() { return true; }
+
+std::string path_names() {
+  std::string names;
+  for (const CpuPath& path : cpu_paths()) names += (names.empty() ? "" : ", ") + std::string(path.name);
+  return names;
+}
+
+const CpuPath& choose_path() {
+  const char* forced = std::getenv("DYQ_CPU_ISA");
+  if (forced == nullptr || *forced == '\0') return *runnable_cpu_paths().front();
+  for (const CpuPath& path : cpu_paths()) {
+    if (path.name != std::string(forced)) continue;
+    if (!path.runs_here()) {
+      throw std::invalid_argument("DYQ_CPU_ISA=" + std::string(forced) + ": this CPU lacks " + path.features);
+    }
+    return path;
+  }
+  throw std::invalid_argument("DYQ_CPU_ISA=" + std::string(forced) + " is not one of this build's paths (" +
+                              path_names() + ")");
+}
+
+}  // namespace
+
+const std::vector<CpuPath>& cpu_paths() {
+  // Best first. Another path (the AMX or AVX512-BF16 GEMMs, say) is one entry here, one
+  // cpu/kernels_<isa>.cpp and its name and target in cpu/isa_region.h.
+  static const std::vector<CpuPath> paths = {
+#if defined(__x86_64__)
+      {"avx512", "AVX-512 F/BW/DQ/VL with VNNI and VBMI", avx512_runs_here, &avx512::kernels},
+      {"avx2", "AVX2 with FMA and F16C", avx2_runs_here, &avx2::kernels},
+#endif
+      {"portable", "nothing beyond the baseline", portable_runs_here, &portable::kernels},
+  };
+  return paths;
+}
+
+std::vector<const CpuPath*> runnable_cpu_paths() {
+  std::vector<const CpuPath*> runnable;
+  for (const CpuPath& path : cpu_paths()) {
+    if (path.runs_here()) runnable.push_back(&path);
+  }
+  return runnable;
+}
+
+const CpuPath& active_cpu_path() {
+  static const CpuPath& active = choose_path();
+  return active;
+}
+
+}  // namespace dyq::cpu

@@ -1,0 +1,43 @@
+// The instruction-set region of a CPU kernel file: every kernel that uses an instruction set beyond the
+// baseline is compiled in a target region of a translation unit of its own (cpu/kernels_<isa>.cpp) and
+// lives in the namespace of that instruction set, dyq::cpu::<isa>, so that one binary holds every path
+// and cpu/cpu_isa.cpp picks one at run time.
+//
+// Why a region rather than -m flags on the file: with flags, the std::vector, std::function and Eigen
+// functions that every kernel file instantiates would each carry that file's instructions, and the linker
+// keeps one copy of each for the whole library, so an AVX-512 copy of a std::vector fill could end up
+// on the AVX2 path. In a region only the functions defined inside it get the instructions; templates
+// from headers included before it (std, Eigen, dyq's common/ and parallel/) keep the baseline ones and
+// may still be inlined into the kernels. Headers that use DYQ_ISA_BEGIN therefore include everything
+// they need first.
+//
+// A kernel file defines one of DYQ_CPU_ISA_AVX512 / DYQ_CPU_ISA_AVX2 before its first include; without
+// either it is the portable path (plain C++ and Eigen at the compiler's baseline: SSE2 on x86-64, NEON
+// on aarch64).
+#pragma once
+
+#if defined(DYQ_CPU_ISA_AVX512)
+#define DYQ_ISA_NAMESPACE avx512
+#define DYQ_ISA_TARGET "avx512f,avx512bw,avx512dq,avx512vl,avx512vnni,avx512vbmi,avx2,fma,f16c"
+#elif defined(DYQ_CPU_ISA_AVX2)
+#define DYQ_ISA_NAMESPACE avx2
+#define DYQ_ISA_TARGET "avx2,fma,f16c"
+#else
+#define DYQ_ISA_NAMESPACE portable
+#endif
+
+#if defined(DYQ_ISA_TARGET)
+#include <immintrin.h>
+#define DYQ_PRAGMA_STRING(text) _Pragma(#text)
+#define DYQ_PRAGMA(text) DYQ_PRAGMA_STRING(text)  // expands DYQ_ISA_TARGET before quoting
+#if defined(__clang__)
+#define DYQ_ISA_BEGIN DYQ_PRAGMA(clang attribute push(__attribute__((target(DYQ_ISA_TARGET))), apply_to = function))
+#define DYQ_ISA_END DYQ_PRAGMA(clang attribute pop)
+#else
+#define DYQ_ISA_BEGIN DYQ_PRAGMA(GCC push_options) DYQ_PRAGMA(GCC target(DYQ_ISA_TARGET))
+#define DYQ_ISA_END DYQ_PRAGMA(GCC pop_options)
+#endif
+#else
+#define DYQ_ISA_BEGIN
+#define DYQ_ISA_END
+#endif

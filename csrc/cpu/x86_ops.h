@@ -1,0 +1,71 @@
+// Helpers of the x86 paths (AVX2 and AVX-512), compiled in each one's target region (cpu/isa_region.h).
+#pragma once
+
+#include "cpu/isa_region.h"
+
+#if defined(DYQ_ISA_TARGET)
+DYQ_ISA_BEGIN
+namespace dyq::cpu::DYQ_ISA_NAMESPACE {
+
+// The elementwise operations that reduce_lanes folds with, on 4 and on 8 fp32 lanes.
+struct AddLanes {
+  __m128 operator()(__m128 a, __m128 b) const { return _mm_add_ps(a, b); }
+  __m256 operator()(__m256 a, __m256 b) const { return _mm256_add_ps(a, b); }
+};
+struct MinLanes {
+  __m128 operator()(__m128 a, __m128 b) const { return _mm_min_ps(a, b); }
+  __m256 operator()(__m256 a, __m256 b) const { return _mm256_min_ps(a, b); }
+};
+struct MaxLanes {
+  __m128 operator()(__m128 a, __m128 b) const { return _mm_max_ps(a, b); }
+  __m256 operator()(__m256 a, __m256 b) const { return _mm256_max_ps(a, b); }
+};
+
+// Op folded over the 8 lanes of v (AddLanes: their sum).
+template <typename Op>
+float reduce_lanes(__m256 v) {
+  const Op op;
+  __m128 half = op(_mm256_castps256_ps128(v), _mm256_extractf128_ps(v, 1));
+  half = op(half, _mm_movehl_ps(half, half));
+  return _mm_cvtss_f32(op(half, _mm_movehdup_ps(half)));
+}
+
+#if defined(DYQ_CPU_ISA_AVX512)
+// The AVX-512 intrinsics dyq uses whose unmasked forms GCC 12 writes with an uninitialized
+// `_mm512_undefined_*()` merge source, which -Wmaybe-uninitialized reports at every inlined call (GCC
+// PR 105593). Each is the same instruction through its zero-masking form with every lane selected, whose
+// merge source is a defined zero vector.
+
+constexpr __mmask16 kAll16 = 0xFFFF;
+
+inline __m512 min_ps(__m512 a, __m512 b) { return _mm512_maskz_min_ps(kAll16, a, b); }
+inline __m512 max_ps(__m512 a, __m512 b) { return _mm512_maskz_max_ps(kAll16, a, b); }
+inline __m512 cvtepi32_ps(__m512i a) { return _mm512_maskz_cvtepi32_ps(kAll16, a); }
+inline __m512i cvtps_epi32(__m512 a) { return _mm512_maskz_cvtps_epi32(kAll16, a); }
+inline __m512 cvtph_ps(__m256i a) { return _mm512_maskz_cvtph_ps(kAll16, a); }
+inline __m512i cvtepu8_epi32(__m128i a) { return _mm512_maskz_cvtepu8_epi32(kAll16, a); }
+inline __m512i cvtepu16_epi32(__m256i a) { return _mm512_maskz_cvtepu16_epi32(kAll16, a); }
+inline __m128i cvtepi32_epi8(__m512i a) { return _mm512_maskz_cvtepi32_epi8(kAll16, a); }
+inline __m512i broadcast_i32x4(__m128i a) { return _mm512_maskz_broadcast_i32x4(kAll16, a); }
+inline __m512 permutexvar_ps(__m512i index, __m512 a) { return _mm512_maskz_permutexvar_ps(kAll16, index, a); }
+inline __m512i slli_epi32(__m512i a, unsigned int count) { return _mm512_maskz_slli_epi32(kAll16, a, count); }
+inline __m512i srli_epi32(__m512i a, unsigned int count) { return _mm512_maskz_srli_epi32(kAll16, a, count); }
+inline __m512i srai_epi32(__m512i a, unsigned int count) { return _mm512_maskz_srai_epi32(kAll16, a, count); }
+#define DYQ_AVX512_ROUND_NEAREST (_MM_FROUND_TO_NEAREST_INT | _MM_FROUND_NO_EXC)
+inline __m512 round_nearest_ps(__m512 a) { return _mm512_maskz_roundscale_ps(kAll16, a, DYQ_AVX512_ROUND_NEAREST); }
+#undef DYQ_AVX512_ROUND_NEAREST
+inline __m512i i32gather_epi32(__m512i index, const void* base) {
+  return _mm512_mask_i32gather_epi32(_mm512_setzero_si512(), kAll16, index, base, 1);
+}
+
+// Op folded over the 16 lanes of v. The header's _mm512_reduce_* and _mm512_castps512_ps256 split the
+// vector with the unmasked extract.
+template <typename Op>
+float reduce_lanes(__m512 v) {
+  return reduce_lanes<Op>(Op()(_mm512_maskz_extractf32x8_ps(0xFF, v, 0), _mm512_maskz_extractf32x8_ps(0xFF, v, 1)));
+}
+#endif
+
+}  // namespace dyq::cpu::DYQ_ISA_NAMESPACE
+DYQ_ISA_END
+#endif

@@ -1,0 +1,20 @@
+"""Which path the CPU kernels run (``csrc/cpu/cpu_isa.h``).
+
+Every path is compiled into ``dyq._C``; the best one this CPU can execute is chosen on first use, unless
+``DYQ_CPU_ISA=avx512|avx2|portable`` forces one (set it before the first dyq op runs).
+"""
+from __future__ import annotations
+
+import os
+
+from .. import _C
+
+
+def cpu_info() -> dict:
+    """``isa``: the path in use; ``runnable``: the paths this CPU can execute, best first; ``compiled``:
+    the paths in this build; ``forced``: the value of ``DYQ_CPU_ISA``, or None.
+
+    Raises ValueError when ``DYQ_CPU_ISA`` names no path or one this CPU cannot execute."""
+    isa, runnable, compiled = _C.cpu_isa()
+    return {"isa": isa, "runnable": list(runnable), "compiled": list(compiled),
+            "forced": os.environ.get("DYQ_CPU_ISA") or None}
