@@ -188,20 +188,27 @@ def test_profile_and_calibrate_commands_write_results_and_a_loadable_config(chec
     (["profile", "stack"], "invalid choice: 'stack'"),
     (["profile", TASK, "--widths", "3"], "expected comma-separated widths"),
     (["profile", TASK, "--stride", "0"], "expected a stride >= 1"),
-    (["profile", TASK, "--episodes", "x"], "expected an integer >= 1"),
+    (["profile", TASK, "--episodes", "x"], "expected an integer"),
+    (["profile", TASK, "--checkpoint", "/no/such/folder"], "no such folder"),
     (["calibrate", TASK, "--theta-fp", "0.5,-1"], "expected comma-separated thresholds"),
+    (["calibrate", TASK, "--profile", "/no/such/profile.json"], "no such file"),
 ])
 def test_bad_arguments_are_refused_by_the_parser(argv, message, capsys):
     assert cli.main(argv) == 2  # the dyq command's one-line usage error (dyq.apps.usage)
     assert message in capsys.readouterr().err
 
 
-def test_missing_inputs_are_reported(checkpoint, tmp_path, capsys):
-    assert cli.main(["profile", TASK, "--widths", "4", "--stride", "1,2"]) == 2
-    assert "--stride must give one stride or one per width [4]" in capsys.readouterr().err
-    assert cli.main(["profile", TASK, "--checkpoint", str(tmp_path / "none")]) == 2
-    assert "has no policy.json" in capsys.readouterr().err
-    assert cli.main(["calibrate", TASK, "--checkpoint", str(checkpoint), "--profile", str(tmp_path / "none.json")]) == 2
-    assert "run `dyq profile lift` first" in capsys.readouterr().err
+def test_missing_inputs_are_reported(checkpoint, tmp_path, capsys, monkeypatch):
+    def error(argv):
+        assert cli.main(argv) == 2
+        err = capsys.readouterr().err
+        assert len(err.strip().splitlines()) == 1 and "Traceback" not in err, err
+        return err
+
+    assert "--stride must give one stride or one per width [4]" in error(["profile", TASK, "--widths", "4",
+                                                                          "--stride", "1,2"])
+    assert "has no policy.json" in error(["profile", TASK, "--checkpoint", str(tmp_path)])
+    monkeypatch.setattr(prof, "RESULTS", tmp_path)  # where the default profile would be
+    assert "run `dyq profile lift` first" in error(["calibrate", TASK, "--checkpoint", str(checkpoint)])
     with pytest.raises(FileNotFoundError, match="run `dyq calibrate lift` first"):
         prof.calibrated_run_config(TASK, tmp_path / "none.json")

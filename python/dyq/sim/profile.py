@@ -46,6 +46,7 @@ import numpy as np
 import dyq
 
 from .. import results as results_io
+from ..apps import usage
 from ..analysis import (
     ProfiledStep,
     bound_parameters,
@@ -607,69 +608,56 @@ def _command(parser: argparse.ArgumentParser) -> str:
     return parser.prog.rsplit(" ", 1)[-1]
 
 
-def _widths(text: str) -> tuple[int, ...]:
-    try:
-        widths = tuple(int(w) for w in text.split(",") if w)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected comma-separated widths from {QUANTIZED_WIDTHS}, got {text!r}")
-    if not widths or any(w not in QUANTIZED_WIDTHS for w in widths):
-        raise argparse.ArgumentTypeError(f"expected comma-separated widths from {QUANTIZED_WIDTHS}, got {text!r}")
-    return widths
+def _list_type(parse_one, accept, expected: str, invalid: list[str]):
+    """A comma-separated list argument: each item parsed by ``parse_one`` and accepted by ``accept``."""
+
+    def parse(text: str) -> tuple:
+        try:
+            values = tuple(parse_one(v) for v in text.split(","))
+        except ValueError:
+            values = ()
+        if not values or not all(accept(v) for v in values):
+            raise argparse.ArgumentTypeError(f"expected {expected}, got {text!r}")
+        return values
+
+    parse.invalid_examples = lambda folder: invalid
+    return parse
 
 
-def _strides(text: str) -> tuple[int, ...]:
-    try:
-        strides = tuple(int(k) for k in text.split(","))
-    except ValueError:
-        strides = ()
-    if not strides or any(k < 1 for k in strides):
-        raise argparse.ArgumentTypeError(f"expected a stride >= 1 or comma-separated strides, got {text!r}")
-    return strides
-
-
-def _thetas(text: str) -> list[float]:
-    try:
-        values = sorted({float(v) for v in text.split(",") if v})
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected comma-separated thresholds >= 0, got {text!r}")
-    if not values or any(not math.isfinite(v) or v < 0 for v in values):
-        raise argparse.ArgumentTypeError(f"expected comma-separated thresholds >= 0, got {text!r}")
-    return values
-
-
-def _positive(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        value = 0
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"expected an integer >= 1, got {text!r}")
-    return value
+_widths = _list_type(int, lambda w: w in QUANTIZED_WIDTHS, f"comma-separated widths from {QUANTIZED_WIDTHS}",
+                     ["3", "4,x", ""])
+_strides = _list_type(int, lambda k: k >= 1, "a stride >= 1 or comma-separated strides", ["0", "1,x"])
+_thetas = _list_type(float, lambda v: math.isfinite(v) and v >= 0, "comma-separated thresholds >= 0",
+                     ["-1", "0.5,nan", "x"])
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     command = _command(parser)
     parser.add_argument("task", choices=sorted(envs.TASKS))
-    parser.add_argument("--checkpoint", type=Path, help="policy checkpoint (default: the one that ships with dyq)")
-    parser.add_argument("--cache", type=Path, default=DEFAULT_CACHE)
-    parser.add_argument("--out", type=Path, help=f"result JSON (default: {RESULTS}/{command}_<task>.json)")
-    parser.add_argument("--figures", type=Path, default=FIGURES, help="folder for the PNG figures")
-    parser.add_argument("--threads", type=_positive, default=1, help="torch threads")
+    parser.add_argument("--checkpoint", type=usage.input_dir,
+                        help="policy checkpoint (default: the one that ships with dyq)")
+    parser.add_argument("--cache", type=usage.output_dir, default=DEFAULT_CACHE)
+    parser.add_argument("--out", type=usage.output_file(".json"),
+                        help=f"result JSON (default: {RESULTS}/{command}_<task>.json)")
+    parser.add_argument("--figures", type=usage.output_dir, default=FIGURES, help="folder for the PNG figures")
+    parser.add_argument("--threads", type=usage.positive_int, default=1, help="torch threads")
     parser.add_argument("--no-progress", action="store_true")
     if command == "profile":
-        parser.add_argument("--episodes", type=_positive, help="successful references to profile (default: per task)")
+        parser.add_argument("--episodes", type=usage.positive_int,
+                            help="successful references to profile (default: per task)")
         parser.add_argument("--widths", type=_widths, help="comma-separated widths to inject (default: per task)")
         parser.add_argument("--stride", type=_strides,
                             help="perturb every stride-th step: one stride, or one per width (default: per task)")
     else:
-        parser.add_argument("--episodes", type=_positive, default=CALIBRATION_EPISODES,
+        parser.add_argument("--episodes", type=usage.positive_int, default=CALIBRATION_EPISODES,
                             help="successful calibration references (teacher-forced errors, Theta, K)")
-        parser.add_argument("--sweep-episodes", type=_positive,
+        parser.add_argument("--sweep-episodes", type=usage.positive_int,
                             help="calibration seeds of the closed-loop theta_fp sweep (default: all)")
         parser.add_argument("--theta-fp", type=_thetas,
                             help=f"comma-separated theta_fp to sweep (default: S_t quantiles {THETA_FP_QUANTILES})")
-        parser.add_argument("--profile", type=Path, help=f"profile JSON (default: {RESULTS}/profile_<task>.json)")
-        parser.add_argument("--config-out", type=Path,
+        parser.add_argument("--profile", type=usage.input_file(".json"),
+                            help=f"profile JSON (default: {RESULTS}/profile_<task>.json)")
+        parser.add_argument("--config-out", type=usage.output_file(".json"),
                             help=f"dispatcher config (default: {RESULTS}/dispatch_<task>.json)")
 
 
@@ -758,14 +746,25 @@ def _fmt_ci(interval) -> str:
     return f"[{_fmt(interval[0])}, {_fmt(interval[1])}]"
 
 
-def _run_calibrate(args, runner: PolicyRunner, store: Store, header: dict) -> int:
+def _read_profile(args, digest: str) -> tuple[Path, dict]:
+    """The profile ``dyq calibrate`` starts from: it must exist and describe this checkpoint."""
     profile_path = args.profile or RESULTS / f"profile_{args.task}.json"
     if not profile_path.is_file():
-        raise FileNotFoundError(f"{profile_path} does not exist: run `dyq profile {args.task}` first")
-    profiled = json.loads(profile_path.read_text())
-    if profiled.get("checkpoint_digest") != header["checkpoint_digest"]:
-        raise ValueError(f"{profile_path} profiles checkpoint {profiled.get('checkpoint_digest')}, not "
-                         f"{header['checkpoint_digest']}: run `dyq profile {args.task}` again")
+        raise usage.UsageError(f"{profile_path} does not exist: run `dyq profile {args.task}` first")
+    try:
+        profiled = json.loads(profile_path.read_text())
+    except json.JSONDecodeError as err:
+        raise usage.UsageError(f"{profile_path} is not a profile written by dyq profile: {err}") from None
+    if not isinstance(profiled, dict) or "records" not in profiled:
+        raise usage.UsageError(f"{profile_path} is not a profile written by dyq profile (no records)")
+    if profiled.get("checkpoint_digest") != digest:
+        raise usage.UsageError(f"{profile_path} profiles checkpoint {profiled.get('checkpoint_digest')}, not "
+                               f"{digest}: run `dyq profile {args.task}` again")
+    return profile_path, profiled
+
+
+def _run_calibrate(args, runner: PolicyRunner, store: Store, header: dict) -> int:
+    profile_path, profiled = _read_profile(args, header["checkpoint_digest"])
     start = time.perf_counter()
     result = calibrate(runner, args.task, store, load_records(profiled), episodes=args.episodes,
                        sweep_episodes=args.sweep_episodes, theta_fp_grid=args.theta_fp,
@@ -821,20 +820,17 @@ def main(args: argparse.Namespace) -> int:
     import torch
 
     torch.set_num_threads(args.threads)
-    try:
-        if args.command == "profile":
-            _budget(args)  # refuse a bad budget before loading anything
-        checkpoint = args.checkpoint or default_checkpoint(args.task)
-        for name in ("policy.json", "model.safetensors"):
-            if not (checkpoint / name).is_file():
-                raise FileNotFoundError(f"checkpoint {checkpoint} has no {name}: train one with `dyq train "
-                                        f"{args.task}` or pass --checkpoint")
-        digest = checkpoint_digest(checkpoint)
-        runner = PolicyRunner.load(checkpoint)
-        store = Store(args.cache, args.task, digest)
-        header = _header(args.task, checkpoint, digest)
-        run = _run_profile if args.command == "profile" else _run_calibrate
-        return run(args, runner, store, header)
-    except (OSError, ValueError) as err:
-        print(f"error: {err}", file=sys.stderr)
-        return 2
+    if args.command == "profile":
+        _budget(args)  # refuse a bad budget before loading anything
+    checkpoint = args.checkpoint or default_checkpoint(args.task)
+    for name in ("policy.json", "model.safetensors"):
+        if not (checkpoint / name).is_file():
+            raise usage.UsageError(f"checkpoint {checkpoint} has no {name}: train one with `dyq train {args.task}` "
+                                   "or pass --checkpoint")
+    digest = checkpoint_digest(checkpoint)
+    if args.command == "calibrate":
+        _read_profile(args, digest)  # refuse a missing or foreign profile before loading anything
+    runner = PolicyRunner.load(checkpoint)
+    store = Store(args.cache, args.task, digest)
+    header = _header(args.task, checkpoint, digest)
+    return (_run_profile if args.command == "profile" else _run_calibrate)(args, runner, store, header)
