@@ -20,9 +20,9 @@ def demonstrations(seed=0, count=12, length=60):
     return demos
 
 
-def test_ladder_splits_the_demonstrations_by_the_budget():
+def test_percentile_ladder_splits_the_targets_by_the_budget():
     demos = demonstrations()
-    config, prime = dispatch_budget.budget_dispatch(demos)
+    config, prime = dispatch_budget.budget_dispatch(demos, after_hysteresis=False)
     thresholds = [t for t, _ in config.ladder]
     assert thresholds == sorted(thresholds) and [b for _, b in config.ladder] == [2, 4, 8]
     # Replaying the same demonstrations with the same history rule, the targets follow the budget.
@@ -32,6 +32,35 @@ def test_ladder_splits_the_demonstrations_by_the_budget():
     np.testing.assert_allclose(shares, [0.4, 0.2, 0.2, 0.2], atol=0.01)
     assert len(prime) >= dispatch_budget.PRIME_STEPS and np.array_equal(prime[-60:], demos[-1])
     assert config.replace(theta_2_4=0.0, theta_4_8=0.0, theta_fp=0.0).delay_window == dyq.DispatchConfig().delay_window
+
+
+def test_default_ladder_meets_the_budget_after_hysteresis():
+    demos = demonstrations(seed=3, count=20)
+    config, _ = dispatch_budget.budget_dispatch(demos)
+    # An independent count of b*_t: a fresh dispatcher per call, the same replay order, warm steps only.
+    dispatcher = dyq.KinematicDispatcher(config)
+    widths = []
+    for demo in demos:
+        dispatcher.reset(keep_history=True)
+        for action in demo:
+            bits = dispatcher.step(action)
+            if np.isfinite(dispatcher.sensitivity):
+                widths.append(bits)
+    widths = np.asarray(widths)
+    shares = [np.mean(widths == b) for b in (2, 4, 8, 16)]
+    np.testing.assert_allclose(shares, list(dispatch_budget.BUDGET_SHARES.values()), atol=0.02)
+    # The hysteresis holds steps at higher widths: the plain percentile ladder runs fewer 2-bit steps.
+    plain, _ = dispatch_budget.budget_dispatch(demos, after_hysteresis=False)
+    plain_widths = dispatch_budget.demonstration_replay(demos, plain)[1]
+    assert np.mean(plain_widths == 2) < shares[0] - 0.02
+    assert config.ladder[0][0] > plain.ladder[0][0]
+
+
+def test_budget_shares_must_be_ordered_shares():
+    with pytest.raises(ValueError, match="quantiles"):
+        dispatch_budget.budget_dispatch(demonstrations(), quantiles=(0.6, 0.4, 0.8))
+    with pytest.raises(ValueError, match="quantiles"):
+        dispatch_budget.budget_dispatch(demonstrations(), quantiles=(0.4, 0.6))
 
 
 def test_primed_dispatcher_skips_the_warm_up_and_is_independent_of_earlier_episodes():
