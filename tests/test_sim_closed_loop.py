@@ -13,7 +13,8 @@ import dyq  # noqa: E402
 from dyq.sim import envs  # noqa: E402
 from dyq.sim import evaluate  # noqa: E402
 from dyq.sim.policy import PolicyConfig, TokenPolicy  # noqa: E402
-from dyq.sim.rollout import InvertedLadderDispatcher, PolicyRunner, RunConfig, make_schedule, run_episode  # noqa: E402
+from dyq.sim.rollout import (InvertedLadderDispatcher, PolicyRunner, RunConfig, make_schedule, run_config,  # noqa: E402
+                             run_episode)
 from dyq.sim.tokens import BinTokenizer  # noqa: E402
 
 TASK = "lift"
@@ -101,17 +102,44 @@ def test_widths_run_in_a_worker_process_equal_the_widths_chosen(policy, tmp_path
             p.copy_(p.to(torch.bfloat16).float())
     checkpoint = policy.save(tmp_path / "policy")
     digest = evaluate.checkpoint_digest(checkpoint)
-    jobs = [(TASK, config, 5, str(checkpoint), str(evaluate.cache_path(tmp_path / "cache", TASK, config, 5, digest)),
-             None) for config in ("w4a2", "w4a8", "dyq")]
+    jobs = [(TASK, run_config(config), 5, str(checkpoint),
+             str(evaluate.cache_path(tmp_path / "cache", TASK, config, 5, digest)), None) for config in ("w4a2", "w4a8", "dyq")]
     evaluate.run_grid(jobs, workers=2, progress=False)
     for job in jobs:
-        episode = evaluate._read_episode(evaluate.cache_path(tmp_path / "cache", TASK, job[1], 5, digest))
+        episode = evaluate._read_episode(evaluate.cache_path(tmp_path / "cache", TASK, job[1].name, 5, digest))
         assert_kernels_ran_the_published_widths(episode)
     # The same episode in this process gives the same actions (the worker's copy is the same policy);
     # here the horizon is the test's shorter one, the worker ran the task's own.
     local = run_episode(PolicyRunner(TokenPolicy.load(checkpoint)), TASK, "w4a8", seed=5)
     cached = evaluate._read_episode(evaluate.cache_path(tmp_path / "cache", TASK, "w4a8", 5, digest))
     assert cached["actions"][: local.steps] == local.actions
+
+
+def test_cache_names_follow_the_dispatcher_each_configuration_runs(policy, tmp_path):
+    from dyq.sim import dispatch_budget
+
+    checkpoint = policy.save(tmp_path / "policy")
+    names = {c: evaluate.config_cache_name(run_config(c), checkpoint)
+             for c in ("fp32", "w4a2", "dyq", "dyq_no_hysteresis", "dyq_inverted", "random_schedule", "random_runs")}
+    assert names["fp32"] == "fp32" and names["w4a2"] == "w4a2"  # no dispatcher: the name alone
+    digest = names["dyq"].split("@")[1]
+    assert names["dyq"] == f"dyq@{digest}" and len(digest) == 8
+    # Another config, or the reversed ladder, is another folder; a schedule is keyed by the dyq it copies.
+    assert len({names["dyq"].split("@")[1], names["dyq_no_hysteresis"].split("@")[1],
+                names["dyq_inverted"].split("@")[1]}) == 3
+    assert names["random_schedule"] == f"random_schedule@{digest}" and names["random_runs"] == f"random_runs@{digest}"
+    # A new width budget beside the same weights moves every dispatcher-driven folder.
+    config, prime = dispatch_budget.budget_dispatch([np.tile(np.linspace(-1, 1, 7), (40, 1)) * np.linspace(1, 0, 40)[:, None]])
+    dispatch_budget.save(checkpoint, config.replace(theta_fp=config.theta_fp + 0.1), prime, source="test")
+    assert evaluate.config_cache_name(run_config("dyq"), checkpoint) != names["dyq"]
+    assert evaluate.config_cache_name(run_config("fp32"), checkpoint) == "fp32"
+
+
+def test_calibrated_configuration_is_per_task():
+    with pytest.raises(ValueError, match="per task"):
+        run_config("dyq_calibrated")
+    with pytest.raises(ValueError, match="dyq_calibrated"):
+        run_config("dyq_calibrate")  # the known names, the calibrated one included
 
 
 def test_summary_counts_success_widths_and_runs():

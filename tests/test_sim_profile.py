@@ -182,6 +182,15 @@ def test_profile_and_calibrate_commands_write_results_and_a_loadable_config(chec
     assert (tmp_path / "calibration_lift_theta_fp.png").stat().st_size > 0
     run = prof.calibrated_run_config(TASK, config_json)
     assert run.name == "dyq_calibrated" and run.dispatch_config() == config
+    # Checked against the checkpoint it was calibrated on, when the record sits beside the config.
+    from dyq.sim.evaluate import checkpoint_digest
+
+    digest = checkpoint_digest(checkpoint)
+    assert calibration["checkpoint_digest"] == digest
+    (tmp_path / "calibration_lift.json").write_text((tmp_path / "calibration.json").read_text())
+    assert prof.calibrated_run_config(TASK, config_json, checkpoint_digest=digest).dispatch_config() == config
+    with pytest.raises(ValueError, match="not on the evaluated checkpoint 000000000000"):
+        prof.calibrated_run_config(TASK, config_json, checkpoint_digest="000000000000")
 
 
 @pytest.mark.parametrize("argv, message", [

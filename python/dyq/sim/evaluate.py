@@ -2,7 +2,9 @@
 
 Every episode is cached as one gzipped JSON file keyed by (task, configuration, seed, checkpoint
 digest), so an interrupted run resumes, a new configuration adds rows without re-running the others,
-and a retrained checkpoint never mixes with an old one. After the grid, the summary of every cached
+and a retrained checkpoint never mixes with an old one. A configuration that runs the dispatcher (and a
+random schedule drawn from DyQ's episodes) is keyed by its effective dispatcher config as well
+(:func:`config_cache_name`), so a recalibrated or re-budgeted dispatcher never reuses old episodes. After the grid, the summary of every cached
 episode in the grid is merged into ``bench/results/closed_loop.json`` (other tasks and configurations
 already there are kept) and the markdown table is rewritten.
 
@@ -46,7 +48,36 @@ def checkpoint_digest(checkpoint: str | os.PathLike) -> str:
 
 
 def cache_path(cache: Path, task: str, config: str, seed: int, digest: str) -> Path:
+    """``config`` is the configuration's cache name (:func:`config_cache_name`)."""
     return cache / task / digest / config / f"seed_{seed:05d}.json.gz"
+
+
+def dispatch_digest(run: "RunConfig", checkpoint: str | os.PathLike) -> str:
+    """First 8 hex digits of the SHA-256 of everything DyQ's dispatcher runs on in ``run``: the effective
+    config (the checkpoint's ``dispatch.json`` with the run's overrides), the priming actions and the
+    ladder's direction."""
+    from . import dispatch_budget
+    import dyq
+
+    base, prime = (dispatch_budget.load(checkpoint) if (Path(checkpoint) / dispatch_budget.DISPATCH_FILE).is_file()
+                   else (dyq.DispatchConfig(), None))
+    h = hashlib.sha256(json.dumps(run.dispatch_config(base).to_dict(), sort_keys=True).encode())
+    h.update(b"inverted" if run.inverted else b"")
+    if prime is not None:
+        h.update(np.ascontiguousarray(prime, dtype=np.float64).tobytes())
+    return h.hexdigest()[:8]
+
+
+def config_cache_name(run: "RunConfig", checkpoint: str | os.PathLike) -> str:
+    """The cache folder of a configuration: its name, and for one that depends on the dispatcher
+    (``dyq*``, and the schedules drawn from ``dyq``), ``name@<dispatch digest>``."""
+    from .rollout import run_config
+
+    if run.kind == "dyq":
+        return f"{run.name}@{dispatch_digest(run, checkpoint)}"
+    if run.kind == "schedule":
+        return f"{run.name}@{dispatch_digest(run_config('dyq'), checkpoint)}"
+    return run.name
 
 
 def _read_episode(path: Path) -> dict[str, Any]:
@@ -73,7 +104,7 @@ def _worker_init(threads: int) -> None:
     torch.set_num_threads(threads)
 
 
-Job = tuple  # (task, config, seed, checkpoint, cache path, schedule or None)
+Job = tuple  # (task, RunConfig, seed, checkpoint, cache path, schedule or None)
 
 
 def _worker_run(job: Job) -> tuple[str, str, int, bool, int]:
@@ -88,7 +119,7 @@ def _worker_run(job: Job) -> tuple[str, str, int, bool, int]:
         _WORKER[env_key] = envs.make_env(task)
     episode = run_episode(_WORKER["runner"], task, config, seed, env=_WORKER[env_key], schedule=schedule)
     _write_episode(Path(path), episode.to_dict())
-    return task, config, seed, episode.success, episode.steps
+    return task, config.name, seed, episode.success, episode.steps
 
 
 def run_grid(jobs: list[Job], workers: int, progress: bool = True) -> None:
@@ -98,7 +129,7 @@ def run_grid(jobs: list[Job], workers: int, progress: bool = True) -> None:
     if not jobs:
         return
     # Jobs sorted by checkpoint so that a worker rarely has to load another policy.
-    jobs = sorted(jobs, key=lambda j: (j[3], j[0], j[2], j[1]))
+    jobs = sorted(jobs, key=lambda j: (j[3], j[0], j[2], j[1].name))
     bar = tqdm(total=len(jobs), disable=not progress, desc="episodes")
     successes = 0
     if workers <= 1:
@@ -281,14 +312,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def main(args: argparse.Namespace) -> int:
-    from .rollout import run_config
+    from .profile import calibrated_run_config
+    from .rollout import CALIBRATED, run_config
 
     tasks = [t for t in args.tasks.split(",") if t]
     configs = [c for c in args.configs.split(",") if c]
     for task in tasks:
         envs.spec(task)
     for config in configs:
-        run_config(config)
+        if config != CALIBRATED:
+            run_config(config)
     if args.episodes < 1:
         raise ValueError(f"--episodes must be >= 1, got {args.episodes}")
     checkpoints = {task: default_checkpoint(task) for task in tasks}
@@ -298,27 +331,35 @@ def main(args: argparse.Namespace) -> int:
             raise ValueError(f"--checkpoint must be TASK=DIR for one of {tasks}, got {item!r}")
         checkpoints[task] = Path(directory)
     digests = {task: checkpoint_digest(checkpoints[task]) for task in tasks}
+    # Each task's configurations, dyq_calibrated from that task's calibration of this very checkpoint.
+    resolved = {task: {name: (calibrated_run_config(task, checkpoint_digest=digests[task]) if name == CALIBRATED
+                              else run_config(name)) for name in configs + ["dyq"]} for task in tasks}
+    cache_names = {task: {name: config_cache_name(run, checkpoints[task]) for name, run in resolved[task].items()}
+                   for task in tasks}
     seeds = list(range(args.episodes))
-    scheduled = [c for c in configs if run_config(c).kind == "schedule"]
+    scheduled = [c for c in configs if resolved[tasks[0]][c].kind == "schedule"] if tasks else []
     # Schedules are drawn from DyQ's episode on the same seed, so those run first.
     first = [c for c in configs if c not in scheduled] + (["dyq"] if scheduled and "dyq" not in configs else [])
+
+    def path_of(task: str, config: str, seed: int) -> Path:
+        return cache_path(args.cache, task, cache_names[task][config], seed, digests[task])
 
     def pending(names: list[str], schedule_of=None) -> list[Job]:
         jobs = []
         for task in tasks:
             for config in names:
                 for seed in seeds:
-                    path = cache_path(args.cache, task, config, seed, digests[task])
+                    path = path_of(task, config, seed)
                     if not path.is_file():
                         schedule = schedule_of(task, config, seed) if schedule_of else None
-                        jobs.append((task, config, seed, str(checkpoints[task]), str(path), schedule))
+                        jobs.append((task, resolved[task][config], seed, str(checkpoints[task]), str(path), schedule))
         return jobs
 
     def schedule_of(task: str, config: str, seed: int) -> list[int]:
         from .rollout import make_schedule
 
-        dyq_bits = _read_episode(cache_path(args.cache, task, "dyq", seed, digests[task]))["bits"]
-        return make_schedule(run_config(config).schedule, dyq_bits, seed, envs.spec(task).horizon)
+        dyq_bits = _read_episode(path_of(task, "dyq", seed))["bits"]
+        return make_schedule(resolved[task][config].schedule, dyq_bits, seed, envs.spec(task).horizon)
 
     total = len(tasks) * len(set(first) | set(scheduled)) * len(seeds)
     if not args.summarize_only:
@@ -335,7 +376,7 @@ def main(args: argparse.Namespace) -> int:
         rows = {}
         for config in configs:
             # With --summarize-only, the episodes cached so far (a row says how many it holds).
-            paths = [cache_path(args.cache, task, config, s, digests[task]) for s in seeds]
+            paths = [path_of(task, config, s) for s in seeds]
             episodes = [_read_episode(p) for p in paths if p.is_file()]
             if episodes:
                 rows[config] = summarize(episodes)

@@ -542,14 +542,25 @@ def calibrate(runner: PolicyRunner, task: str, store: Store, records: Sequence[P
     }
 
 
-def calibrated_run_config(task: str, path: str | Path | None = None) -> RunConfig:
+def calibrated_run_config(task: str, path: str | Path | None = None,
+                          checkpoint_digest: str | None = None) -> RunConfig:
     """The ``dyq_calibrated`` closed-loop configuration of ``task``: DyQ with the dispatcher config
-    that ``dyq calibrate`` wrote (default ``bench/results/dispatch_<task>.json``)."""
+    that ``dyq calibrate`` wrote (default ``bench/results/dispatch_<task>.json``).
+
+    With ``checkpoint_digest``, the calibration record beside it (``calibration_<task>.json``) must have
+    been measured on that checkpoint: a config calibrated on another policy is an error, not a row.
+    """
     path = Path(path) if path is not None else RESULTS / f"dispatch_{task}.json"
     if not path.is_file():
         raise FileNotFoundError(f"{path} does not exist: run `dyq calibrate {task}` first")
+    if checkpoint_digest is not None:
+        record = path.with_name(f"calibration_{task}.json")
+        calibrated_on = json.loads(record.read_text()).get("checkpoint_digest") if record.is_file() else None
+        if calibrated_on != checkpoint_digest:
+            raise ValueError(f"{path} was calibrated on checkpoint {calibrated_on or '(no record at ' + str(record) + ')'}, "
+                             f"not on the evaluated checkpoint {checkpoint_digest}: run `dyq calibrate {task}` again")
     # Every field, by its readable name: the whole calibrated config, whatever base it is applied to.
-    return RunConfig("dyq_calibrated", "dyq", dispatch=dyq.DispatchConfig.load(path).to_dict())
+    return RunConfig("dyq_calibrated", "dyq", dispatch=dyq.DispatchConfig.load(path).to_dict(), source=str(path))
 
 
 # -- figures ----------------------------------------------------------------------------------------

@@ -68,6 +68,7 @@ class RunConfig:
     weights: str = "rtn"  # "rtn" (round to nearest) or "smoothquant"
     inverted: bool = False  # "dyq" with the ladder reversed
     schedule: str | None = None  # "shares" or "runs": a "schedule" drawn from DyQ's episode on the seed
+    source: str = ""  # the file the dispatch overrides came from (``dyq_calibrated``)
 
     def dispatch_config(self, base: "dyq.DispatchConfig | None" = None) -> "dyq.DispatchConfig":
         """The dispatcher's config: ``base`` (the checkpoint's, :mod:`dyq.sim.dispatch_budget`) with this
@@ -131,9 +132,20 @@ def make_schedule(kind: str, dyq_bits: list[int], seed: int, length: int) -> lis
     raise ValueError(f"schedule kind must be 'shares' or 'runs', got {kind!r}")
 
 
-def run_config(name: str) -> RunConfig:
+CALIBRATED = "dyq_calibrated"  # DyQ with the task's config from ``dyq calibrate`` (resolved per task)
+
+
+def run_config(name: str, task: str | None = None) -> RunConfig:
+    """The configuration called ``name``; ``dyq_calibrated`` needs the ``task`` whose calibration it reads
+    (``bench/results/dispatch_<task>.json``, :func:`dyq.sim.profile.calibrated_run_config`)."""
+    if name == CALIBRATED:
+        if task is None:
+            raise ValueError(f"configuration {CALIBRATED!r} is per task: pass the task")
+        from .profile import calibrated_run_config
+
+        return calibrated_run_config(task)
     if name not in CONFIGS:
-        raise ValueError(f"unknown configuration {name!r}; choose from {sorted(CONFIGS)}")
+        raise ValueError(f"unknown configuration {name!r}; choose from {sorted(CONFIGS) + [CALIBRATED]}")
     return CONFIGS[name]
 
 
@@ -242,7 +254,7 @@ def run_episode(runner: PolicyRunner, task: str, config: RunConfig | str, seed: 
     environment with an offscreen renderer, see :func:`dyq.sim.envs.make_env`).
     """
     if isinstance(config, str):
-        config = run_config(config)
+        config = run_config(config, task)
     spec = envs.spec(task)
     if config.kind == "schedule":
         if schedule is None or len(schedule) < spec.horizon:
