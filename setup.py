@@ -18,7 +18,7 @@ import subprocess
 import sys
 from pathlib import Path
 
-from setuptools import Extension, find_packages, setup
+from setuptools import Extension, find_namespace_packages, setup
 from setuptools.command.build_ext import build_ext
 
 ROOT = Path(__file__).resolve().parent
@@ -65,7 +65,9 @@ class CMakeBuild(build_ext):
 
 
 setup(
-    packages=find_packages("python"),
+    # Namespace discovery: the policy folders (data only, no __init__.py) are packages too, as Python
+    # sees them, so setuptools neither warns about them nor drops them.
+    packages=find_namespace_packages("python", include=["dyq*"], exclude=["*__pycache__*"]),
     package_dir={"": "python"},
     # Everything under python/dyq ships, data too (the trained policies under dyq/sim/policies/<task>/).
     package_data={"dyq": ["**/*"]},
