@@ -176,6 +176,24 @@ def test_results_merge_keeps_other_rows(tmp_path, monkeypatch):
     assert "| w4a8 |" in evaluate.markdown_table(data)
 
 
+def test_table_states_whether_the_target_is_met(tmp_path):
+    def row(successes, low_share):
+        episodes = [{"seed": s, "success": s < successes, "steps": 10,
+                     "bits": [2] * int(10 * low_share) + [16] * (10 - int(10 * low_share)), "latency_ms": [1.0] * 10,
+                     "prefill_kernel_bits": [{}] * 10, "decode_kernel_bits": [{}] * 10} for s in range(10)]
+        return evaluate.summarize(episodes)
+
+    out = tmp_path / "closed_loop.json"
+    data = evaluate.update_results(out, TASK, list(range(10)), "ckpt", "abc",
+                                   {"fp32": row(8, 0.0), "dyq": row(8, 0.7), "dyq_calibrated": row(6, 0.9)})
+    table = evaluate.markdown_table(data)
+    assert "dyq keeps 100 % of fp32's success rate with 70 % of its steps below 8 bits" in table
+    assert "with 70 % of its steps below 8 bits (target: 99.5 % with 60 %): met on these 10 seeds" in table
+    assert "dyq_calibrated keeps 75 % of fp32's success rate with 90 %" in table and "not met" in table
+    assert {(c["config"], c["against"]) for c in data["tasks"][TASK]["comparisons"]} >= {
+        ("dyq_calibrated", "fp32"), ("dyq_calibrated", "dyq"), ("dyq", "fp32")}
+
+
 def test_random_schedules_keep_dyq_statistics():
     dyq_bits = [16] * 10 + [8] * 3 + [2] * 20 + [4] * 5 + [2] * 7
     shares = make_schedule("shares", dyq_bits, seed=3, length=4000)

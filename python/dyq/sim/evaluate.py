@@ -36,7 +36,11 @@ DEFAULT_CACHE = Path(".cache/closed_loop")
 WIDTHS = (2, 4, 8, 16)
 # Paired comparisons reported for every task: (configuration, against).
 COMPARISONS = (("dyq", "fp32"), ("dyq", "w4a16"), ("dyq", "w4a2"), ("dyq", "random_schedule"),
-               ("dyq", "random_runs"), ("dyq_inverted", "dyq"))
+               ("dyq", "random_runs"), ("dyq_inverted", "dyq"), ("dyq_calibrated", "fp32"), ("dyq_calibrated", "dyq"))
+# The target of the closed loop (paper Table I's claim): DyQ keeps this share of fp32's success ...
+TARGET_RETENTION = 0.995
+# ... with at least this share of its control steps below 8 bits.
+TARGET_SHARE_BELOW_8 = 0.60
 
 
 def checkpoint_digest(checkpoint: str | os.PathLike) -> str:
@@ -276,6 +280,16 @@ def markdown_table(data: dict[str, Any]) -> str:
                 f"| [{100 * lo:.0f}, {100 * hi:.0f}] % | {row['mean_bits']:.2f} | {100 * row['share_below_8']:.0f} % "
                 f"| {' / '.join(f'{100 * share[str(w)]:.0f}' for w in WIDTHS)} % | {row['mean_steps']:.0f} "
                 f"| {row['latency_ms']['median']:.1f} |")
+        reference = entry["configs"].get("fp32")
+        for name in ("dyq", "dyq_calibrated"):
+            row = entry["configs"].get(name)
+            if row and reference and reference["successes"]:
+                retention = row["success_rate"] / reference["success_rate"]
+                met = retention >= TARGET_RETENTION and row["share_below_8"] >= TARGET_SHARE_BELOW_8
+                lines += ["", f"{name} keeps {100 * retention:.0f} % of fp32's success rate with "
+                              f"{100 * row['share_below_8']:.0f} % of its steps below 8 bits (target: "
+                              f"{100 * TARGET_RETENTION:.1f} % with {100 * TARGET_SHARE_BELOW_8:.0f} %): "
+                              f"{'met' if met else 'not met'} on these {row['episodes']} seeds."]
         if entry.get("comparisons"):
             lines += ["", "Paired on the same seeds (exact McNemar test on the discordant seeds):", ""]
             for c in entry["comparisons"]:
