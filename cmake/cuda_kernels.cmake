@@ -7,6 +7,8 @@ if(NOT DEFINED CMAKE_CUDA_ARCHITECTURES)
 endif()
 enable_language(CUDA)
 find_package(CUDAToolkit REQUIRED)
+# One line that says what the kernel library targets (.ci/run prints it).
+message(STATUS "dyq CUDA architectures: ${CMAKE_CUDA_ARCHITECTURES}")
 
 add_library(dyq_cuda_kernels STATIC
   csrc/weight/weight_pack_cuda.cu
