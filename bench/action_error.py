@@ -10,6 +10,7 @@ Writes bench/results/action_error.json and docs/action_error.md.
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 import time
 from pathlib import Path
@@ -45,8 +46,9 @@ def main(argv: list[str] | None = None) -> int:
         if task not in tasks or not directory:
             parser.error(f"--checkpoint must be TASK=DIR for one of {tasks}, got {item!r}")
         checkpoints[task] = Path(directory)
-    results = {"environment": environment(), "tasks": {}}
-    tables = []
+    # Tasks already measured stay (a later run of other tasks merges into the same file and table).
+    results = json.loads(args.out.read_text()) if args.out.is_file() else {"tasks": {}}
+    results["environment"] = environment()
     for task in tasks:
         begin = time.perf_counter()
         runner = PolicyRunner.load(checkpoints[task])
@@ -58,9 +60,9 @@ def main(argv: list[str] | None = None) -> int:
         result.update(checkpoint=str(checkpoints[task]), checkpoint_digest=digest, seeds=[r.seed for r in found],
                       tried_seeds=tried, wall_s=round(time.perf_counter() - begin, 1))
         results["tasks"][task] = result
-        tables.append(action_error.markdown(task, result))
-        print(tables[-1])
+        print(action_error.markdown(task, result))
     write_json(args.out, results)
+    tables = [action_error.markdown(task, result) for task, result in results["tasks"].items()]
     args.table.parent.mkdir(parents=True, exist_ok=True)
     args.table.write_text(
         "# Action error per width\n\nWritten by `python bench/action_error.py` "
