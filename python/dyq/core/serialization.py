@@ -28,7 +28,10 @@ from .precision import check_bits, check_group_size
 CONFIG_NAME = "dyq_config.json"
 WEIGHTS_NAME = "model.safetensors"
 FORMAT_VERSION = 1
-WEIGHT_METHODS = ("rtn_int4_symmetric",)  # round-to-nearest symmetric INT4 per group (docs/numerics.md)
+# The name each weight method (quantize_model's ``method``) is saved under; all write the symmetric INT4
+# format of docs/numerics.md section 1, so any of them loads the same way.
+WEIGHT_METHOD_NAMES = {"rtn": "rtn_int4_symmetric", "mse": "mse_clip_int4_symmetric", "awq": "awq_int4_symmetric"}
+WEIGHT_METHODS = tuple(WEIGHT_METHOD_NAMES.values())
 
 
 def _safetensors():
@@ -55,7 +58,12 @@ def quantization_state(model: nn.Module) -> dict[str, Any]:
         raise ValueError(f"the DyQLinear layers of {type(model).__name__} are bound to {len(flags)} different "
                          "flags; a saved model has one")
     flag = next(iter(flags.values()), None)
-    return {"format": "dyq", "version": FORMAT_VERSION, "weight_method": WEIGHT_METHODS[0], "rotation": None,
+    methods = sorted({m.weight_method for m in model.modules() if isinstance(m, DyQLinear)})
+    if len(methods) > 1:
+        raise ValueError(f"the DyQLinear layers of {type(model).__name__} were quantized by several methods "
+                         f"({methods}); a saved model has one")
+    return {"format": "dyq", "version": FORMAT_VERSION, "weight_method": WEIGHT_METHOD_NAMES[methods[0]],
+            "rotation": None,
             "model_class": type(model).__name__, "flag_bits": flag.bits if flag is not None else None,
             "layers": layers}
 
@@ -115,6 +123,7 @@ def prepare_quantized_layers(model: nn.Module, state: dict[str, Any], flag: Prec
     """Turn the Linear layers that ``state`` lists into DyQLinear layers of the saved geometry (their
     contents are overwritten by the load that follows)."""
     found = dict(model.named_modules())
+    method = next(m for m, saved in WEIGHT_METHOD_NAMES.items() if saved == state["weight_method"])
     for name, layer in state["layers"].items():
         module = found.get(name)
         if isinstance(module, DyQLinear):
@@ -129,6 +138,7 @@ def prepare_quantized_layers(model: nn.Module, state: dict[str, Any], flag: Prec
                              f"{layer['out_features']}, bias={layer['bias']})")
         DyQLinear.convert_in_place(module, group_size=layer["group_size"], act_bits=layer["act_bits"], flag=flag,
                                    quantize=False)
+        module.weight_method = method
 
 
 def load_quantized(model_or_config, directory: str | os.PathLike) -> nn.Module:
