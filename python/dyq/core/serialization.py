@@ -5,8 +5,9 @@ A directory written by :func:`save_quantized` holds
 * ``model.safetensors``: the model's state dict (INT4 ``qweight``, fp32 ``scales``, biases and every other
   parameter), written by ``safetensors.torch.save_model`` so that tied tensors are stored once;
 * ``dyq_config.json``: what the weights alone do not say: the format version, the weight method, the
-  rotation (none yet; the keys are there for later methods), the flag's bit-width and, per converted
-  layer, its group size, activation bit-width and shape.
+  rotation (``None``, or ``{"kind": "hadamard", "seed": s}`` after :func:`dyq.rotation.rotate_llama`: the
+  folded rotations are in the weights, the online one is rebuilt from the seed), the flag's bit-width
+  and, per converted layer, its group size, activation bit-width and shape.
 
 :func:`load_quantized` rebuilds the DyQLinear layers of a freshly built model (or of a Hugging Face
 config's model) from that description, loads the tensors into them and binds them to one new
@@ -63,7 +64,7 @@ def quantization_state(model: nn.Module) -> dict[str, Any]:
         raise ValueError(f"the DyQLinear layers of {type(model).__name__} were quantized by several methods "
                          f"({methods}); a saved model has one")
     return {"format": "dyq", "version": FORMAT_VERSION, "weight_method": WEIGHT_METHOD_NAMES[methods[0]],
-            "rotation": None,
+            "rotation": getattr(model, "dyq_rotation", None),
             "model_class": type(model).__name__, "flag_bits": flag.bits if flag is not None else None,
             "layers": layers}
 
@@ -96,8 +97,11 @@ def read_quantization_state(directory: str | os.PathLike) -> dict[str, Any]:
         raise ValueError(f"{path!r} has format version {state.get('version')!r}; this dyq reads {FORMAT_VERSION}")
     if state.get("weight_method") not in WEIGHT_METHODS:
         raise ValueError(f"{path!r} uses weight method {state.get('weight_method')!r}; this dyq knows {WEIGHT_METHODS}")
-    if state.get("rotation") is not None:
-        raise ValueError(f"{path!r} uses rotation {state['rotation']!r}, which this dyq does not implement")
+    rotation = state.get("rotation")
+    if rotation is not None and not (isinstance(rotation, dict) and rotation.get("kind") == "hadamard"
+                                     and isinstance(rotation.get("seed"), int) and rotation["seed"] >= 0):
+        raise ValueError(f"{path!r} uses rotation {rotation!r}; this dyq knows None and "
+                         "{'kind': 'hadamard', 'seed': <int >= 0>} (dyq.rotation.rotate_llama)")
     for name, layer in state["layers"].items():
         check_group_size(layer["group_size"])
         check_bits(layer["act_bits"], f"layers[{name!r}].act_bits")
@@ -150,6 +154,14 @@ def load_quantized(model_or_config, directory: str | os.PathLike) -> nn.Module:
     flag = PrecisionFlag(state["flag_bits"]) if state["flag_bits"] is not None else None
     with torch.no_grad():
         prepare_quantized_layers(model, state, flag)
+        if state["rotation"] is not None:
+            # The rotation is in the saved weights but for down_proj's run-time input rotation, rebuilt from
+            # its seed; the rotated LM head differs from the embedding, so they are untied first.
+            from ..rotation import attach_online_rotations, untie_lm_head
+
+            untie_lm_head(model)
+            attach_online_rotations(model, state["rotation"]["seed"])
+            model.dyq_rotation = dict(state["rotation"])
     missing, unexpected = _safetensors().load_model(model, os.path.join(directory, WEIGHTS_NAME), strict=False)
     if missing or unexpected:
         raise ValueError(f"the saved weights do not fit this model: missing {sorted(missing)[:5]}, "
