@@ -61,9 +61,11 @@ class DyQHfQuantizer(HfQuantizer):
         if not self.pre_quantized:
             return
         config = self.quantization_config
+        method = next(m for m, saved in WEIGHT_METHOD_NAMES.items() if saved == config.weight_method)
         for _, linear in self._targets(model):  # shells of the saved shape; the load fills them
             DyQLinear.convert_in_place(linear, group_size=config.group_size, act_bits=config.act_bits,
                                        quantize=False)
+            linear.weight_method = method
 
     def _process_model_after_weight_loading(self, model, **kwargs):
         config = self.quantization_config
