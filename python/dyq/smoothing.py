@@ -23,6 +23,7 @@ observations, never evaluation episodes).
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Callable, Iterable
 
 import torch
@@ -61,6 +62,53 @@ def smoothing_scales(activation_max: torch.Tensor, weights: Iterable[torch.Tenso
     return scales.clamp(min=1e-5)
 
 
+@dataclass
+class ScaleGroup:
+    """Linear layers that read one activation, and how to divide that activation by per-channel scales
+    where it is produced (an RMSNorm weight or a producing layer's rows)."""
+
+    readers: list[nn.Linear]
+    divide_producer: Callable[[torch.Tensor], None]
+
+    @torch.no_grad()
+    def fold(self, scales: torch.Tensor) -> None:
+        """x / s at the producer, W diag(s) in every reader: the float function is unchanged."""
+        self.divide_producer(scales)
+        for reader in self.readers:
+            reader.weight.mul_(scales.to(reader.weight.device, reader.weight.dtype))
+
+
+def _divide_norm(norm):
+    def divide(s):
+        norm.weight.div_(s.to(norm.weight.device, norm.weight.dtype))
+    return divide
+
+
+def _divide_rows(linear):
+    def divide(s):
+        linear.weight.div_(s.to(linear.weight.device, linear.weight.dtype)[:, None])
+        if linear.bias is not None:
+            linear.bias.div_(s.to(linear.bias.device, linear.bias.dtype))
+    return divide
+
+
+def llama_scale_groups(model: nn.Module, strict: bool = True) -> list[ScaleGroup]:
+    """The scale groups of every decoder layer of a Llama-style model (module docstring); ``strict``: an
+    error if the model has no such layer, else an empty list."""
+    layers = [m for m in model.modules() if hasattr(m, "self_attn") and hasattr(m, "mlp")]
+    if not layers and strict:
+        raise ValueError("smooth_llama needs decoder layers with self_attn and mlp (a Llama-style model)")
+    groups = []
+    for layer in layers:
+        attn, mlp = layer.self_attn, layer.mlp
+        groups.append(ScaleGroup([attn.q_proj, attn.k_proj, attn.v_proj], _divide_norm(layer.input_layernorm)))
+        groups.append(ScaleGroup([mlp.gate_proj, mlp.up_proj], _divide_norm(layer.post_attention_layernorm)))
+        groups.append(ScaleGroup([mlp.down_proj], _divide_rows(mlp.up_proj)))
+        if attn.v_proj.out_features == attn.o_proj.in_features:
+            groups.append(ScaleGroup([attn.o_proj], _divide_rows(attn.v_proj)))
+    return groups
+
+
 @torch.no_grad()
 def smooth_llama(model: nn.Module, maxima: dict[str, torch.Tensor], alpha: float = 0.5) -> int:
     """Folds SmoothQuant scales into every decoder layer of a Hugging Face Llama-style model in place.
@@ -71,36 +119,13 @@ def smooth_llama(model: nn.Module, maxima: dict[str, torch.Tensor], alpha: float
     if not 0.0 <= alpha <= 1.0:
         raise ValueError(f"alpha must be in [0, 1], got {alpha}")
     names = {module: name for name, module in model.named_modules()}
-    layers = [m for m in model.modules() if hasattr(m, "self_attn") and hasattr(m, "mlp")]
-    if not layers:
-        raise ValueError("smooth_llama needs decoder layers with self_attn and mlp (a Llama-style model)")
     smoothed = 0
-
-    def fold(readers: list[nn.Linear], divide: Callable[[torch.Tensor], None]) -> int:
-        key = names[readers[0]]
+    for group in llama_scale_groups(model):
+        key = names[group.readers[0]]
         if key not in maxima:
             raise ValueError(f"no activation maximum for {key}: calibrate on the same model")
-        scales = smoothing_scales(maxima[key].to(readers[0].weight.device), [r.weight for r in readers], alpha)
-        divide(scales)
-        for reader in readers:
-            reader.weight.mul_(scales.to(reader.weight.dtype))
-        return len(readers)
-
-    def divide_norm(norm):
-        return lambda s: norm.weight.div_(s.to(norm.weight.dtype))
-
-    def divide_rows(linear):
-        def divide(s):
-            linear.weight.div_(s.to(linear.weight.dtype)[:, None])
-            if linear.bias is not None:
-                linear.bias.div_(s.to(linear.bias.dtype))
-        return divide
-
-    for layer in layers:
-        attn, mlp = layer.self_attn, layer.mlp
-        smoothed += fold([attn.q_proj, attn.k_proj, attn.v_proj], divide_norm(layer.input_layernorm))
-        smoothed += fold([mlp.gate_proj, mlp.up_proj], divide_norm(layer.post_attention_layernorm))
-        smoothed += fold([mlp.down_proj], divide_rows(mlp.up_proj))
-        if attn.v_proj.out_features == attn.o_proj.in_features:
-            smoothed += fold([attn.o_proj], divide_rows(attn.v_proj))
+        scales = smoothing_scales(maxima[key].to(group.readers[0].weight.device),
+                                  [r.weight for r in group.readers], alpha)
+        group.fold(scales)
+        smoothed += len(group.readers)
     return smoothed

@@ -20,15 +20,18 @@ from ..control.flag import PrecisionFlag
 from .linear import DyQLinear
 from .precision import check_bits, check_group_size
 from .quantize import _matches, quantize_model
-from .serialization import WEIGHT_METHODS
+from .serialization import WEIGHT_METHOD_NAMES, WEIGHT_METHODS
+from .weight_methods import CALIBRATED_METHODS
 
 
 @register_quantization_config("dyq")
 class DyQConfig(QuantizationConfigMixin):
     """dyq's quantization config: INT4 weights in groups of ``group_size``, activations at ``act_bits``
     (the flag's initial value), the layers of ``modules_to_not_convert`` kept in full precision.
-    ``weight_method`` and ``rotation`` leave room for later options (only round-to-nearest symmetric INT4
-    and no rotation exist today)."""
+    ``weight_method`` is the saved name of a :func:`dyq.quantize_model` method; quantizing on load runs
+    the calibration-free ones (round-to-nearest, the clipping search), while a calibrated model (AWQ) is
+    quantized with ``dyq.quantize_model(..., calibration=...)`` and then saved. ``rotation`` leaves room
+    for later options (no rotation is loaded this way)."""
 
     def __init__(self, group_size: int = 128, act_bits: int = 16, modules_to_not_convert=("lm_head",),
                  weight_method: str = WEIGHT_METHODS[0], rotation: str | None = None, **kwargs: Any):
@@ -58,9 +61,11 @@ class DyQHfQuantizer(HfQuantizer):
         if not self.pre_quantized:
             return
         config = self.quantization_config
+        method = next(m for m, saved in WEIGHT_METHOD_NAMES.items() if saved == config.weight_method)
         for _, linear in self._targets(model):  # shells of the saved shape; the load fills them
             DyQLinear.convert_in_place(linear, group_size=config.group_size, act_bits=config.act_bits,
                                        quantize=False)
+            linear.weight_method = method
 
     def _process_model_after_weight_loading(self, model, **kwargs):
         config = self.quantization_config
@@ -70,8 +75,12 @@ class DyQHfQuantizer(HfQuantizer):
                 if isinstance(module, DyQLinear):
                     module.bind_flag(flag)
         else:
+            method = next(m for m, saved in WEIGHT_METHOD_NAMES.items() if saved == config.weight_method)
+            if method in CALIBRATED_METHODS:
+                raise ValueError(f"weight_method={config.weight_method!r} needs calibration data, which loading "
+                                 "cannot pass: quantize with dyq.quantize_model(model, method=..., calibration=...)")
             quantize_model(model, group_size=config.group_size, skip=config.modules_to_not_convert,
-                           act_bits=config.act_bits, flag=flag)
+                           act_bits=config.act_bits, flag=flag, method=method)
         return model
 
     def param_needs_quantization(self, model, param_name: str, **kwargs) -> bool:

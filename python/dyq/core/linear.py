@@ -52,7 +52,12 @@ class DyQLinear(nn.Module):
     Gradients: ``x.grad`` is that of ``x W^T + b`` with the dequantized weight (straight-through over the
     activation quantization), so adapters trained beside a frozen DyQLinear (LoRA) learn; the INT4 weights
     themselves have no gradient.
+
+    ``weight_method`` names how the codes were chosen (``quantize_model``'s ``method``); every method writes
+    the same format, so it is a record, not a switch.
     """
+
+    weight_method = "rtn"
 
     def __init__(self, in_features: int, out_features: int, bias: bool = True, *, group_size: int = 128,
                  act_bits: int = 16, flag: PrecisionFlag | None = None, device=None,

@@ -12,6 +12,8 @@ from torch import nn
 from ..control.flag import PrecisionFlag
 from .linear import DyQLinear
 from .precision import check_bits, check_group_size
+from .weight_methods import (CALIBRATED_METHODS, DEFAULT_CALIBRATION_BITS, awq_prepare, check_calibration_bits,
+                             check_method, packed_clipped_weight)
 
 SkipPattern = Union[str, Pattern[str]]
 DEFAULT_SKIP = ("lm_head",)
@@ -47,6 +49,7 @@ class QuantizationReport:
     """
 
     group_size: int
+    method: str = "rtn"
     converted: list[str] = field(default_factory=list)
     skipped: dict[str, str] = field(default_factory=dict)
     shared: dict[str, list[str]] = field(default_factory=dict)
@@ -70,7 +73,8 @@ class QuantizationReport:
             return (f"dyq: the model is already quantized ({len(self.already_quantized)} DyQLinear layers); "
                     f"nothing to convert" + "".join(f"\n  skipped {n}: {why}" for n, why in self.skipped.items()))
         lines = [
-            f"dyq: converted {len(self.converted)} linear layers to INT4 (group_size={self.group_size}), "
+            f"dyq: converted {len(self.converted)} linear layers to INT4 (group_size={self.group_size}, "
+            f"method={self.method}), "
             f"skipped {len(self.skipped)}",
             f"  converted layers: {self.linear_bytes_before * mb:10.2f} MiB -> {self.linear_bytes_after * mb:10.2f} MiB "
             f"({100 * self.linear_ratio:.1f} %)",
@@ -85,7 +89,8 @@ class QuantizationReport:
 
 
 def quantize_model(model: nn.Module, group_size: int = 128, skip: Iterable[SkipPattern] = DEFAULT_SKIP,
-                   act_bits: int = 16, flag: PrecisionFlag | None = None) -> QuantizationReport:
+                   act_bits: int = 16, flag: PrecisionFlag | None = None, method: str = "rtn", calibration=None,
+                   calibration_bits=DEFAULT_CALIBRATION_BITS) -> QuantizationReport:
     """Convert every ``nn.Linear`` of ``model`` in place to a :class:`DyQLinear` with INT4 weights.
 
     Args:
@@ -99,6 +104,15 @@ def quantize_model(model: nn.Module, group_size: int = 128, skip: Iterable[SkipP
         act_bits: the initial activation bit-width of the converted layers (16 = unquantized).
         flag: a :class:`PrecisionFlag` that every converted layer reads at run time, so that one write
             switches the whole model (the dispatcher's b*_t).
+        method: how the INT4 codes and scales are chosen (``dyq.core.weight_methods``, docs/numerics.md
+            section 1a): ``"rtn"`` (round-to-nearest from the absmax), ``"mse"`` (per-group clipping search)
+            or ``"awq"`` (activation-aware scaling folded into the float model, then clipping weighted by
+            the activations; needs ``calibration``). Every method writes the same format.
+        calibration: for ``"awq"``, what the model is run on to observe its activations: a tensor
+            (``model(t)``, e.g. token ids ``[batch, seq]``), a dict of keyword arguments, a list of those, or a
+            callable. Keep it disjoint from the data the quantized model is evaluated on.
+        calibration_bits: the activation widths the ``"awq"`` search weighs equally (by relative error): one
+            weight set serves every width, so by default all of them, (16, 8, 4, 2).
 
     Each Linear is converted in place (its class becomes DyQLinear), so a layer that several parents
     share stays one layer, and a bare ``nn.Linear`` passed as ``model`` is itself converted.
@@ -109,8 +123,15 @@ def quantize_model(model: nn.Module, group_size: int = 128, skip: Iterable[SkipP
     check_bits(act_bits, "act_bits")
     if flag is not None and not isinstance(flag, PrecisionFlag):
         raise TypeError(f"flag must be a dyq.PrecisionFlag or None, got {type(flag).__name__}")
+    check_method(method)
+    calibration_bits = check_calibration_bits(calibration_bits)
+    if method in CALIBRATED_METHODS and calibration is None:
+        raise ValueError(f"method={method!r} needs calibration: a small batch of inputs (e.g. token ids "
+                         "[batch, seq]) disjoint from the evaluation data")
+    if method not in CALIBRATED_METHODS and calibration is not None:
+        raise ValueError(f"calibration is only used by methods {CALIBRATED_METHODS}; method={method!r} takes none")
     skip = tuple(skip) if not isinstance(skip, (str, re.Pattern)) else (skip,)
-    report = QuantizationReport(group_size=group_size, model_bytes_before=_module_bytes(model))
+    report = QuantizationReport(group_size=group_size, method=method, model_bytes_before=_module_bytes(model))
 
     names: dict[int, list[str]] = {}
     modules: dict[int, nn.Module] = {}
@@ -122,14 +143,31 @@ def quantize_model(model: nn.Module, group_size: int = 128, skip: Iterable[SkipP
             names.setdefault(id(module), []).append(name)
             modules[id(module)] = module
 
+    def skipped_as(key: int) -> str | None:
+        return next((n for n in names[key] if _matches(n, skip)), None)
+
+    channel_weight: dict[int, torch.Tensor | None] = {}
+    if method == "awq":
+        channel_weight = awq_prepare(model, calibration, group_size, calibration_bits,
+                                     targets=lambda linear: id(linear) in modules and skipped_as(id(linear)) is None)
+
     for key, linear in modules.items():
         first, *others = names[key]
-        matched = [n for n in names[key] if _matches(n, skip)]
-        if matched:
-            report.skipped[first] = "matches a skip pattern" + (f" (as {matched[0]})" if matched[0] != first else "")
+        matched = skipped_as(key)
+        if matched is not None:
+            report.skipped[first] = "matches a skip pattern" + (f" (as {matched})" if matched != first else "")
             continue
         report.linear_bytes_before += _tensor_bytes(linear.parameters())
-        DyQLinear.convert_in_place(linear, group_size=group_size, act_bits=act_bits, flag=flag)
+        if method == "rtn":
+            DyQLinear.convert_in_place(linear, group_size=group_size, act_bits=act_bits, flag=flag)
+        else:
+            weight = linear.weight.detach()
+            qweight, scales = packed_clipped_weight(_even_columns(weight), group_size,
+                                                    _even_columns(channel_weight.get(key)))
+            DyQLinear.convert_in_place(linear, group_size=group_size, act_bits=act_bits, flag=flag, quantize=False)
+            linear.qweight.copy_(qweight)
+            linear.scales.copy_(scales)
+        linear.weight_method = method
         report.linear_bytes_after += linear.weight_bytes()
         report.converted.append(first)
         if others:
@@ -137,6 +175,13 @@ def quantize_model(model: nn.Module, group_size: int = 128, skip: Iterable[SkipP
 
     report.model_bytes_after = _module_bytes(model)
     return report
+
+
+def _even_columns(t: torch.Tensor | None) -> torch.Tensor | None:
+    """An odd in_features gets the one zero column that DyQLinear stores (docs/numerics.md section 4)."""
+    if t is None or t.shape[-1] % 2 == 0:
+        return t
+    return nn.functional.pad(t, (0, 1))
 
 
 def model_flag(model: nn.Module) -> PrecisionFlag:

@@ -5,8 +5,9 @@ A directory written by :func:`save_quantized` holds
 * ``model.safetensors``: the model's state dict (INT4 ``qweight``, fp32 ``scales``, biases and every other
   parameter), written by ``safetensors.torch.save_model`` so that tied tensors are stored once;
 * ``dyq_config.json``: what the weights alone do not say: the format version, the weight method, the
-  rotation (none yet; the keys are there for later methods), the flag's bit-width and, per converted
-  layer, its group size, activation bit-width and shape.
+  rotation (``None``, or ``{"kind": "hadamard", "seed": s}`` after :func:`dyq.rotation.rotate_llama`: the
+  folded rotations are in the weights, the online one is rebuilt from the seed), the flag's bit-width
+  and, per converted layer, its group size, activation bit-width and shape.
 
 :func:`load_quantized` rebuilds the DyQLinear layers of a freshly built model (or of a Hugging Face
 config's model) from that description, loads the tensors into them and binds them to one new
@@ -28,7 +29,10 @@ from .precision import check_bits, check_group_size
 CONFIG_NAME = "dyq_config.json"
 WEIGHTS_NAME = "model.safetensors"
 FORMAT_VERSION = 1
-WEIGHT_METHODS = ("rtn_int4_symmetric",)  # round-to-nearest symmetric INT4 per group (docs/numerics.md)
+# The name each weight method (quantize_model's ``method``) is saved under; all write the symmetric INT4
+# format of docs/numerics.md section 1, so any of them loads the same way.
+WEIGHT_METHOD_NAMES = {"rtn": "rtn_int4_symmetric", "mse": "mse_clip_int4_symmetric", "awq": "awq_int4_symmetric"}
+WEIGHT_METHODS = tuple(WEIGHT_METHOD_NAMES.values())
 
 
 def _safetensors():
@@ -55,7 +59,12 @@ def quantization_state(model: nn.Module) -> dict[str, Any]:
         raise ValueError(f"the DyQLinear layers of {type(model).__name__} are bound to {len(flags)} different "
                          "flags; a saved model has one")
     flag = next(iter(flags.values()), None)
-    return {"format": "dyq", "version": FORMAT_VERSION, "weight_method": WEIGHT_METHODS[0], "rotation": None,
+    methods = sorted({m.weight_method for m in model.modules() if isinstance(m, DyQLinear)})
+    if len(methods) > 1:
+        raise ValueError(f"the DyQLinear layers of {type(model).__name__} were quantized by several methods "
+                         f"({methods}); a saved model has one")
+    return {"format": "dyq", "version": FORMAT_VERSION, "weight_method": WEIGHT_METHOD_NAMES[methods[0]],
+            "rotation": getattr(model, "dyq_rotation", None),
             "model_class": type(model).__name__, "flag_bits": flag.bits if flag is not None else None,
             "layers": layers}
 
@@ -88,8 +97,11 @@ def read_quantization_state(directory: str | os.PathLike) -> dict[str, Any]:
         raise ValueError(f"{path!r} has format version {state.get('version')!r}; this dyq reads {FORMAT_VERSION}")
     if state.get("weight_method") not in WEIGHT_METHODS:
         raise ValueError(f"{path!r} uses weight method {state.get('weight_method')!r}; this dyq knows {WEIGHT_METHODS}")
-    if state.get("rotation") is not None:
-        raise ValueError(f"{path!r} uses rotation {state['rotation']!r}, which this dyq does not implement")
+    rotation = state.get("rotation")
+    if rotation is not None and not (isinstance(rotation, dict) and rotation.get("kind") == "hadamard"
+                                     and isinstance(rotation.get("seed"), int) and rotation["seed"] >= 0):
+        raise ValueError(f"{path!r} uses rotation {rotation!r}; this dyq knows None and "
+                         "{'kind': 'hadamard', 'seed': <int >= 0>} (dyq.rotation.rotate_llama)")
     for name, layer in state["layers"].items():
         check_group_size(layer["group_size"])
         check_bits(layer["act_bits"], f"layers[{name!r}].act_bits")
@@ -115,6 +127,7 @@ def prepare_quantized_layers(model: nn.Module, state: dict[str, Any], flag: Prec
     """Turn the Linear layers that ``state`` lists into DyQLinear layers of the saved geometry (their
     contents are overwritten by the load that follows)."""
     found = dict(model.named_modules())
+    method = next(m for m, saved in WEIGHT_METHOD_NAMES.items() if saved == state["weight_method"])
     for name, layer in state["layers"].items():
         module = found.get(name)
         if isinstance(module, DyQLinear):
@@ -129,6 +142,7 @@ def prepare_quantized_layers(model: nn.Module, state: dict[str, Any], flag: Prec
                              f"{layer['out_features']}, bias={layer['bias']})")
         DyQLinear.convert_in_place(module, group_size=layer["group_size"], act_bits=layer["act_bits"], flag=flag,
                                    quantize=False)
+        module.weight_method = method
 
 
 def load_quantized(model_or_config, directory: str | os.PathLike) -> nn.Module:
@@ -140,6 +154,14 @@ def load_quantized(model_or_config, directory: str | os.PathLike) -> nn.Module:
     flag = PrecisionFlag(state["flag_bits"]) if state["flag_bits"] is not None else None
     with torch.no_grad():
         prepare_quantized_layers(model, state, flag)
+        if state["rotation"] is not None:
+            # The rotation is in the saved weights but for down_proj's run-time input rotation, rebuilt from
+            # its seed; the rotated LM head differs from the embedding, so they are untied first.
+            from ..rotation import attach_online_rotations, untie_lm_head
+
+            untie_lm_head(model)
+            attach_online_rotations(model, state["rotation"]["seed"])
+            model.dyq_rotation = dict(state["rotation"])
     missing, unexpected = _safetensors().load_model(model, os.path.join(directory, WEIGHTS_NAME), strict=False)
     if missing or unexpected:
         raise ValueError(f"the saved weights do not fit this model: missing {sorted(missing)[:5]}, "

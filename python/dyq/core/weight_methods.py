@@ -1,0 +1,261 @@
+"""How :func:`dyq.quantize_model` chooses a layer's INT4 codes and scales (``method=``).
+
+Every method writes the format of docs/numerics.md section 1 unchanged (symmetric codes in [-8, 7], one
+fp32 scale per row and group, the last group of a row holding the remainder), so the kernels run its
+output as they run round-to-nearest's; only the choice of scale, and through it of the codes, differs.
+
+* ``"rtn"``: round-to-nearest from the group's absmax, the kernels' own ``quantize_weight``.
+* ``"mse"``: per-group clipping search. For each group the scale ``s = c * absmax / 7`` is tried for every
+  clipping ratio ``c`` of :data:`CLIP_RATIOS`; the codes are ``clamp(rne(W / s), -8, 7)`` and the ratio with
+  the smallest squared error ``sum_k h_k (W_k - s q_k)^2`` is kept (``h = 1``: plain weight MSE).
+  Clipping the few largest weights of a group buys a finer step for all the others.
+* ``"awq"``: activation-aware scaling (AWQ, Lin et al. 2024), then the clipping search weighted by the
+  calibration activations' mean square ``h_k = E[x_k^2]`` (the diagonal of the layer's Hessian
+  ``X^T X``, so the error weighted is the output's, to first order). The scaling multiplies input
+  channel k of the layers that read one activation by ``s_k = mean|x_k|^alpha`` (normalised to geometric
+  mean 1) and divides the activation by s where it is produced (the RMSNorm weight before q/k/v and
+  gate/up, the rows of up_proj before down_proj, the rows of v_proj before o_proj when every head has
+  its own value head; see :func:`dyq.smoothing.llama_scale_groups`), which leaves the float model's
+  function unchanged. ``alpha`` is searched on :data:`ALPHAS`; the objective is the layers' output error
+  with round-to-nearest weights *and* activations fake-quantized at every width of ``calibration_bits``
+  (the reference's Eq. 2), ``mean_b log ||X W^T - Q_b(X / s) Q_w(W diag s)^T||^2``: the log makes each width
+  count by its relative error, so the one frozen weight set is chosen for all widths the dispatcher may
+  pick, not for the one with the largest absolute error. ``alpha = 0`` (no scaling) is a candidate, so on
+  the calibration batch the search never does worse than round-to-nearest. Layers with no foldable
+  producer (o_proj under grouped-query attention, any non-Llama layer) get the weighted clipping only.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Callable, Sequence
+
+import torch
+from torch import nn
+
+from . import reference
+from .precision import check_bits
+
+METHODS = ("rtn", "mse", "awq")
+CALIBRATED_METHODS = ("awq",)
+# Clipping ratios tried by the "mse" search, largest first so that a tie keeps the larger (absmax) scale.
+CLIP_RATIOS = tuple(round(1.0 - 0.02 * i, 2) for i in range(26))  # 1.00, 0.98, ..., 0.50
+ALPHAS = tuple(i / 10 for i in range(11))                            # 0.0, 0.1, ..., 1.0
+DEFAULT_CALIBRATION_BITS = (16, 8, 4, 2)
+# Rows of X kept per scale group for the alpha search (the statistics use every calibration token).
+SEARCH_TOKENS = 256
+
+
+def check_method(method) -> str:
+    if method not in METHODS:
+        raise ValueError(f"method must be one of {METHODS}, got {method!r}")
+    return method
+
+
+def clipped_weight(weight: torch.Tensor, group_size: int, channel_weight: torch.Tensor | None = None,
+                   ratios: Sequence[float] = CLIP_RATIOS) -> tuple[torch.Tensor, torch.Tensor]:
+    """The "mse" search: (codes int8 [N, K], scales float32 [N, ceil(K/G)]) minimising, per group,
+    ``sum_k h_k (W_k - s q_k)^2`` over ``s = c * absmax / 7``, ``c`` in ``ratios`` (``h = channel_weight``, [K],
+    or 1). An all-zero group gets scale 1 and codes 0, as in round-to-nearest."""
+    if weight.dim() != 2:
+        raise ValueError(f"weight must be 2-D [out_features, in_features], got shape {tuple(weight.shape)}")
+    if not torch.isfinite(weight).all():
+        raise ValueError("weight contains NaN or Inf")
+    k = weight.shape[1]
+    w = reference._grouped(weight.detach().float().cpu(), group_size)                # [N, Gs, G]
+    if channel_weight is None:
+        h = torch.ones(1, 1, 1, dtype=torch.float64)
+    else:
+        if channel_weight.shape != (k,):
+            raise ValueError(f"channel_weight must have shape [in_features = {k}], got {tuple(channel_weight.shape)}")
+        h = reference._grouped(channel_weight.detach().double().cpu().clamp(min=0)[None], group_size)
+    absmax = w.abs().amax(dim=-1)
+    empty = absmax / 7 == 0
+    best_error = torch.full(absmax.shape, math.inf, dtype=torch.float64)
+    best_scale = torch.ones_like(absmax)
+    for ratio in ratios:
+        scale = (ratio * absmax) / 7
+        scale = torch.where(scale == 0, torch.ones_like(scale), scale)
+        codes = torch.round(w / scale[..., None]).clamp(reference.WEIGHT_QMIN, reference.WEIGHT_QMAX)
+        error = (((w - scale[..., None] * codes).double() ** 2) * h).sum(dim=-1)
+        better = error < best_error
+        best_error = torch.where(better, error, best_error)
+        best_scale = torch.where(better, scale, best_scale)
+    best_scale = torch.where(empty, torch.ones_like(best_scale), best_scale)
+    codes = torch.round(w / best_scale[..., None]).clamp(reference.WEIGHT_QMIN, reference.WEIGHT_QMAX)
+    codes = torch.where(empty[..., None], torch.zeros_like(codes), codes)
+    return reference._ungrouped(codes, k).to(torch.int8), best_scale
+
+
+def packed_clipped_weight(weight: torch.Tensor, group_size: int, channel_weight: torch.Tensor | None = None
+                          ) -> tuple[torch.Tensor, torch.Tensor]:
+    """(qweight uint8 [N, K/2], scales) of :func:`clipped_weight`, in the packed layout of docs/numerics.md."""
+    codes, scales = clipped_weight(weight, group_size, channel_weight)
+    return reference.pack_int4(codes), scales
+
+
+def _rtn_dequantized(weight: torch.Tensor, group_size: int) -> torch.Tensor:
+    codes, scales = reference.quantize_weight(weight, group_size)
+    grouped = reference._grouped(codes.float(), group_size) * scales[..., None]
+    return reference._ungrouped(grouped, weight.shape[1])
+
+
+def _fake_quantized_activations(x: torch.Tensor, group_size: int, act_bits: int) -> torch.Tensor:
+    if act_bits == 16:
+        return x
+    codes, scales, zeros = reference.quantize_activations(x, group_size, act_bits)
+    grouped = reference._grouped(codes.float(), group_size) - zeros.float()[..., None]
+    return reference._ungrouped(grouped * scales[..., None], x.shape[-1])
+
+
+def awq_objective(x: torch.Tensor, weights: Sequence[torch.Tensor], scales: torch.Tensor, group_size: int,
+                  calibration_bits: Sequence[int]) -> float:
+    """``mean_b log sum_W ||x W^T - Q_b(x / s) Q_w(W diag s)^T||^2`` (the "awq" alpha search's objective)."""
+    reference_out = [x @ w.T for w in weights]
+    quantized = [_rtn_dequantized(w * scales, group_size) for w in weights]
+    total = 0.0
+    for bits in calibration_bits:
+        xq = _fake_quantized_activations(x / scales, group_size, bits)
+        error = sum(((xq @ wq.T - y) ** 2).sum().item() for wq, y in zip(quantized, reference_out))
+        total += math.log(max(error, 1e-300))
+    return total / len(calibration_bits)
+
+
+def awq_channel_scales(mean_abs: torch.Tensor, alpha: float) -> torch.Tensor:
+    """``s_k = mean|x_k|^alpha``, divided by its geometric mean so that the weights' overall range stays put."""
+    scales = mean_abs.double().clamp(min=1e-5) ** alpha
+    return (scales / scales.log().mean().exp()).float()
+
+
+def search_awq_scales(x: torch.Tensor, mean_abs: torch.Tensor, weights: Sequence[torch.Tensor], group_size: int,
+                      calibration_bits: Sequence[int], alphas: Sequence[float] = ALPHAS) -> tuple[torch.Tensor, float]:
+    """(s, alpha) minimising :func:`awq_objective` over ``alphas``; ties keep the smaller alpha."""
+    weights = [w.detach().float() for w in weights]
+    best = (math.inf, None, None)
+    for alpha in alphas:
+        scales = awq_channel_scales(mean_abs, alpha)
+        value = awq_objective(x, weights, scales, group_size, calibration_bits)
+        if value < best[0]:
+            best = (value, scales, alpha)
+    return best[1], best[2]
+
+
+# ---- calibration: what the layers read ------------------------------------------------------------------
+
+@dataclass
+class InputStatistics:
+    """Per input channel sums over the calibration tokens of one linear layer, and a sample of its rows."""
+
+    count: int = 0
+    sum_abs: torch.Tensor | None = None
+    sum_square: torch.Tensor | None = None
+    rows: list[torch.Tensor] = field(default_factory=list)
+
+    def add(self, x: torch.Tensor, keep_rows: bool) -> None:
+        x = x.detach().reshape(-1, x.shape[-1]).float().cpu()
+        abs_sum, square_sum = x.abs().sum(dim=0).double(), (x.double() ** 2).sum(dim=0)
+        self.sum_abs = abs_sum if self.sum_abs is None else self.sum_abs + abs_sum
+        self.sum_square = square_sum if self.sum_square is None else self.sum_square + square_sum
+        self.count += x.shape[0]
+        if keep_rows:
+            self.rows.append(x)
+
+    @property
+    def mean_abs(self) -> torch.Tensor:
+        return (self.sum_abs / self.count).float()
+
+    @property
+    def mean_square(self) -> torch.Tensor:
+        return (self.sum_square / self.count).float()
+
+    def sample(self, tokens: int, seed: int = 0) -> torch.Tensor:
+        rows = torch.cat(self.rows)
+        if rows.shape[0] > tokens:
+            rows = rows[torch.randperm(rows.shape[0], generator=torch.Generator().manual_seed(seed))[:tokens]]
+        return rows
+
+
+def run_calibration(model: nn.Module, calibration) -> None:
+    """Run ``model`` on the calibration data: a callable (called with no argument), a tensor (``model(t)``), a
+    dict (``model(**d)``), or a list or tuple of tensors and dicts (each run in turn)."""
+    if calibration is None:
+        raise ValueError("calibration must be given for a calibrated method: a tensor of inputs (e.g. token ids "
+                         "[batch, seq]), a dict of model keyword arguments, a list of those, or a callable")
+    if callable(calibration) and not isinstance(calibration, nn.Module):
+        calibration()
+        return
+    batches = list(calibration) if isinstance(calibration, (list, tuple)) else [calibration]
+    if not batches:
+        raise ValueError("calibration is empty: pass at least one batch")
+    for i, batch in enumerate(batches):
+        where = "calibration" + (f"[{i}]" if isinstance(calibration, (list, tuple)) else "")
+        if isinstance(batch, torch.Tensor):
+            if batch.numel() == 0:
+                raise ValueError(f"{where} is an empty tensor of shape {tuple(batch.shape)}")
+            call = lambda: model(batch)  # noqa: E731
+        elif isinstance(batch, dict):
+            call = lambda: model(**batch)  # noqa: E731
+        else:
+            raise TypeError(f"{where} must be a tensor or a dict of keyword arguments, got {type(batch).__name__}")
+        try:
+            call()
+        except (RuntimeError, ValueError, IndexError, TypeError) as err:
+            raise ValueError(f"{where} does not fit the model ({type(model).__name__} raised: {err})") from err
+
+
+@torch.no_grad()
+def collect_input_statistics(model: nn.Module, calibration, keep_rows_of: set[int]) -> dict[int, InputStatistics]:
+    """InputStatistics of every ``nn.Linear`` of ``model`` (keyed by ``id``) over the calibration data; the
+    rows themselves are kept for the layers in ``keep_rows_of``."""
+    statistics: dict[int, InputStatistics] = {}
+    hooks = []
+
+    def observe(module):
+        def hook(_module, inputs):
+            statistics.setdefault(id(module), InputStatistics()).add(inputs[0], id(module) in keep_rows_of)
+        return hook
+
+    for module in model.modules():
+        if isinstance(module, nn.Linear):
+            hooks.append(module.register_forward_pre_hook(observe(module)))
+    try:
+        run_calibration(model, calibration)
+    finally:
+        for hook in hooks:
+            hook.remove()
+    if not statistics:
+        raise ValueError("calibration ran no nn.Linear of the model: nothing to calibrate")
+    return statistics
+
+
+def check_calibration_bits(calibration_bits) -> tuple[int, ...]:
+    if isinstance(calibration_bits, int) or not calibration_bits:
+        raise ValueError(f"calibration_bits must be a non-empty sequence of widths from {DEFAULT_CALIBRATION_BITS}, "
+                         f"got {calibration_bits!r}")
+    return tuple(check_bits(b, "calibration_bits") for b in calibration_bits)
+
+
+@torch.no_grad()
+def awq_prepare(model: nn.Module, calibration, group_size: int, calibration_bits: Sequence[int],
+                targets: Callable[[nn.Linear], bool]) -> dict[int, torch.Tensor]:
+    """Search and fold the AWQ scales of ``model`` in place (float function unchanged); returns, for every
+    linear layer, the mean square of its input after the folding (the clipping search's channel weights).
+    ``targets(linear)`` says whether a layer will be quantized: a scale group is folded only if all its
+    readers will be."""
+    from ..smoothing import llama_scale_groups
+
+    groups = [g for g in llama_scale_groups(model, strict=False) if all(targets(r) for r in g.readers)]
+    statistics = collect_input_statistics(model, calibration, {id(g.readers[0]) for g in groups})
+    channel_weight = {key: s.mean_square for key, s in statistics.items()}
+    for group in groups:
+        observed = statistics.get(id(group.readers[0]))
+        if observed is None:
+            continue  # the calibration never reached this layer: leave it unscaled
+        x = observed.sample(SEARCH_TOKENS)
+        scales, _ = search_awq_scales(x, observed.mean_abs, [r.weight for r in group.readers], group_size,
+                                      calibration_bits)
+        group.fold(scales)
+        for reader in group.readers:
+            if id(reader) in channel_weight:
+                channel_weight[id(reader)] = channel_weight[id(reader)] / scales.double().pow(2).float()
+    return channel_weight

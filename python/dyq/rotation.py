@@ -1,0 +1,251 @@
+"""Orthogonal (Hadamard) rotations that remove activation outliers before INT4, as QuaRot does.
+
+A few channels of a Llama's hidden state are tens of times larger than the rest; per-token activation
+quantization gives them the group's range and every other channel loses its resolution, which is what
+breaks A4 and A2. Multiplying the activation by an orthogonal matrix R whose entries all have magnitude
+``1/sqrt(n)`` (a normalised Hadamard matrix with random signs) spreads each outlier over every channel,
+and ``x W^T = (x R)(W R)^T`` keeps the product exact. :func:`rotate_llama` applies three rotations to a
+Hugging Face Llama model, in place, before :func:`dyq.quantize_model`:
+
+1. **The residual stream** (size d = hidden_size), folded into the weights. The RMSNorm weights are first
+   folded into the layers that read the norm (q/k/v, gate/up, lm_head), leaving norms without a weight, so
+   that ``norm(h R) = norm(h) R`` (an orthogonal R keeps ``mean(h^2)``). Then the embedding becomes ``E R``,
+   every layer that reads the stream (q, k, v, gate, up, lm_head) ``W R``, and every layer that writes it
+   (o, down) ``R^T W``. The embedding and the LM head, tied in many small models, are untied, since they
+   now hold different matrices (``E R`` and ``E diag(g) R``).
+2. **Each attention head's values** (size head_dim), folded: v_proj's rows per value head become
+   ``H^T W`` and o_proj's columns per query head ``W H``; the same H for every head keeps grouped-query
+   attention exact.
+3. **down_proj's input** (size intermediate_size), online: ``silu(gate) * up`` is not linear in the
+   weights, so the rotation runs at run time (:class:`OnlineRotation`, a forward pre-hook of down_proj)
+   and down_proj's weight becomes ``W R``. It costs ``(m + p) * n`` multiply-adds per token for
+   ``n = m * p`` (two small matrix products, below), against ``n * d`` for the layer itself.
+
+**Sizes that are not powers of two.** :func:`hadamard_matrix` builds a Hadamard matrix of order
+``n = 2^k * m`` as the Kronecker product of Sylvester's ``H_{2^k}`` with a Paley matrix of order m: Paley I
+for ``m = q + 1``, q a prime = 3 mod 4 (12, 20, 24, 44, 60, ...), Paley II for ``m = 2 (q + 1)``, q a prime =
+1 mod 4 (12, 28, 36, 60, ...). SmolLM's 576 = 16 * 36, 960 = 16 * 60 and 1536 = 128 * 12 are all covered.
+When no such split exists, the documented fallback is a random orthogonal matrix (the Q of a seeded
+Gaussian's QR decomposition): as orthogonal and as exact, with outliers spread only in expectation.
+
+The rotated float model computes the same function up to floating-point rounding (tested).
+"""
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import nn
+
+
+# ---- Hadamard matrices ----------------------------------------------------------------------------------
+
+def _is_prime(q: int) -> bool:
+    return q >= 2 and all(q % f for f in range(2, math.isqrt(q) + 1))
+
+
+def _jacobsthal(q: int) -> torch.Tensor:
+    """Q[i, j] = chi(j - i), chi the quadratic character mod the prime q."""
+    squares = {(i * i) % q for i in range(1, q)}
+    chi = torch.tensor([0] + [1 if a in squares else -1 for a in range(1, q)], dtype=torch.float64)
+    index = (torch.arange(q)[None, :] - torch.arange(q)[:, None]) % q
+    return chi[index]
+
+
+def _paley(m: int) -> torch.Tensor | None:
+    """A Hadamard matrix of order m by Paley's first or second construction, or None."""
+    q = m - 1
+    if m % 4 == 0 and _is_prime(q) and q % 4 == 3:
+        s = torch.zeros(m, m, dtype=torch.float64)
+        s[0, 1:] = 1
+        s[1:, 0] = -1
+        s[1:, 1:] = _jacobsthal(q)
+        return s + torch.eye(m, dtype=torch.float64)
+    q = m // 2 - 1
+    if m % 4 == 0 and _is_prime(q) and q % 4 == 1:
+        c = torch.zeros(q + 1, q + 1, dtype=torch.float64)
+        c[0, 1:] = 1
+        c[1:, 0] = 1
+        c[1:, 1:] = _jacobsthal(q)
+        one = torch.tensor([[1.0, 1.0], [1.0, -1.0]], dtype=torch.float64)
+        other = torch.tensor([[1.0, -1.0], [-1.0, -1.0]], dtype=torch.float64)
+        return torch.kron(c, one) + torch.kron(torch.eye(q + 1, dtype=torch.float64), other)
+    return None
+
+
+def _sylvester(p: int) -> torch.Tensor:
+    h = torch.ones(1, 1, dtype=torch.float64)
+    while h.shape[0] < p:
+        h = torch.cat([torch.cat([h, h], 1), torch.cat([h, -h], 1)], 0)
+    return h
+
+
+def hadamard_factors(n: int) -> tuple[torch.Tensor, torch.Tensor] | None:
+    """(A [m, m], B [p, p]), +-1 Hadamard matrices with ``n = m * p`` (B Sylvester's, the largest power of
+    two that leaves a Paley order m), or None if this construction has no matrix of order n."""
+    if not isinstance(n, int) or isinstance(n, bool) or n < 1:
+        raise ValueError(f"n must be an int >= 1, got {n!r}")
+    p = 1 << ((n & -n).bit_length() - 1)  # the largest power of two dividing n
+    while p >= 1:
+        m = n // p
+        a = torch.ones(1, 1, dtype=torch.float64) if m == 1 else _paley(m)
+        if a is not None:
+            return a, _sylvester(p)
+        p //= 2
+    return None
+
+
+def hadamard_matrix(n: int) -> torch.Tensor | None:
+    """A +-1 matrix H of order n with ``H H^T = n I`` (float64), or None (see :func:`hadamard_factors`)."""
+    factors = hadamard_factors(n)
+    return None if factors is None else torch.kron(*factors)
+
+
+class OnlineRotation(nn.Module):
+    """``x -> x R`` with ``R = diag(signs) (A kron B)``, A [m, m] and B [p, p] orthogonal: computed as
+    ``A^T X B`` on x viewed as [..., m, p], which is ``(m + p) n`` multiply-adds instead of ``n^2``.
+
+    The fallback for sizes without a Hadamard construction is ``A`` a random orthogonal matrix, ``p = 1``.
+    The buffers are float64 (cast to the input's dtype when applied) and not persistent: they are rebuilt from
+    the size and seed that ``dyq_config.json`` records.
+    """
+
+    def __init__(self, size: int, seed: int = 0) -> None:
+        super().__init__()
+        gen = torch.Generator().manual_seed(seed)
+        factors = hadamard_factors(size)
+        if factors is None:
+            left, _ = torch.linalg.qr(torch.randn(size, size, generator=gen, dtype=torch.float64))
+            right = torch.ones(1, 1, dtype=torch.float64)
+        else:
+            left, right = (f / math.sqrt(f.shape[0]) for f in factors)
+        signs = torch.randint(0, 2, (size,), generator=gen, dtype=torch.float64) * 2 - 1
+        self.size, self.seed = size, seed
+        self.register_buffer("signs", signs, persistent=False)
+        self.register_buffer("left", left, persistent=False)
+        self.register_buffer("right", right, persistent=False)
+
+    def matrix(self, dtype: torch.dtype = torch.float64) -> torch.Tensor:
+        """The dense R [n, n] (for folding into weights)."""
+        return (self.signs.double()[:, None] * torch.kron(self.left.double(), self.right.double())).to(dtype)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        if x.shape[-1] != self.size:
+            raise ValueError(f"OnlineRotation of size {self.size} got x of shape {tuple(x.shape)}")
+        m, p = self.left.shape[0], self.right.shape[0]
+        y = (x * self.signs.to(x.dtype)).reshape(*x.shape[:-1], m, p)
+        y = self.left.T.to(x.dtype) @ y @ self.right.to(x.dtype)
+        return y.reshape(x.shape)
+
+    def extra_repr(self) -> str:
+        return f"size={self.size}, factors=({self.left.shape[0]}, {self.right.shape[0]}), seed={self.seed}"
+
+
+# ---- folding into a Llama model ---------------------------------------------------------------------------
+
+def _decoder_layers(model: nn.Module):
+    inner = getattr(model, "model", None)
+    layers = getattr(inner, "layers", None)
+    needed = ("embed_tokens", "norm")
+    if layers is None or not all(hasattr(inner, a) for a in needed) or not hasattr(model, "lm_head"):
+        raise ValueError("model must be a Hugging Face Llama-style causal LM (model.model.embed_tokens, "
+                         f".layers, .norm and model.lm_head), got {type(model).__name__}")
+    for layer in layers:
+        if not all(hasattr(layer, a) for a in ("self_attn", "mlp", "input_layernorm", "post_attention_layernorm")):
+            raise ValueError(f"decoder layer {type(layer).__name__} is not Llama-style (self_attn, mlp, two norms)")
+        if getattr(layer.mlp, "down_proj", None) is None or not isinstance(layer.mlp.down_proj, nn.Linear):
+            raise ValueError("rotate_llama must run before quantize_model (down_proj must be an nn.Linear)")
+    return inner, layers
+
+
+def _fold_norm(norm: nn.Module, readers: list[nn.Linear]) -> None:
+    """RMSNorm(h) * g feeding W equals RMSNorm(h) feeding W diag(g): move g into the readers, set it to 1."""
+    g = norm.weight.detach().double()
+    for reader in readers:
+        reader.weight.copy_(reader.weight.double() * g)
+    norm.weight.fill_(1.0)
+
+
+def _rotate_input(linear: nn.Linear, rotation: torch.Tensor) -> None:
+    linear.weight.copy_(linear.weight.double() @ rotation)
+
+
+def _rotate_output(linear: nn.Linear, rotation: torch.Tensor) -> None:
+    linear.weight.copy_(rotation.T @ linear.weight.double())
+    if linear.bias is not None:
+        linear.bias.copy_(linear.bias.double() @ rotation)
+
+
+def attach_online_rotations(model: nn.Module, seed: int) -> OnlineRotation:
+    """Give every decoder layer's down_proj the run-time rotation of its input (as a forward pre-hook; the
+    module is held as ``mlp.down_proj_rotation``). Used by :func:`rotate_llama` and when loading."""
+    _, layers = _decoder_layers_any(model)
+    rotation = OnlineRotation(layers[0].mlp.down_proj.in_features, seed + 2)
+    for layer in layers:
+        layer.mlp.down_proj_rotation = rotation
+        layer.mlp.down_proj.register_forward_pre_hook(lambda _module, inputs, r=rotation: (r(inputs[0]),))
+    return rotation
+
+
+def _decoder_layers_any(model: nn.Module):
+    inner = getattr(model, "model", None)
+    layers = getattr(inner, "layers", None)
+    if not layers:
+        raise ValueError(f"model must be a Hugging Face Llama-style causal LM, got {type(model).__name__}")
+    return inner, layers
+
+
+def untie_lm_head(model: nn.Module) -> None:
+    """Give the LM head its own weight (a rotated model's head and embedding differ)."""
+    inner, _ = _decoder_layers_any(model)
+    if model.lm_head.weight is inner.embed_tokens.weight:
+        model.lm_head.weight = nn.Parameter(inner.embed_tokens.weight.detach().clone(),
+                                            requires_grad=inner.embed_tokens.weight.requires_grad)
+    if getattr(model, "config", None) is not None:
+        model.config.tie_word_embeddings = False
+        # transformers 5 ties through this table as well; a rotated model must not be re-tied on load.
+        if isinstance(getattr(model, "_tied_weights_keys", None), dict):
+            model._tied_weights_keys = {}
+
+
+@torch.no_grad()
+def rotate_llama(model: nn.Module, seed: int = 0) -> dict:
+    """Rotate a float Llama model in place (module docstring); returns the description that
+    ``dyq.save_quantized`` records (``{"kind": "hadamard", "seed": seed}``)."""
+    if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
+        raise ValueError(f"seed must be an int >= 0, got {seed!r}")
+    if getattr(model, "dyq_rotation", None) is not None:
+        raise ValueError("the model is already rotated (model.dyq_rotation is set)")
+    inner, layers = _decoder_layers(model)
+    untie_lm_head(model)
+    hidden = inner.embed_tokens.weight.shape[1]
+    residual = OnlineRotation(hidden, seed).matrix()
+    for layer in layers:
+        attn, mlp = layer.self_attn, layer.mlp
+        _fold_norm(layer.input_layernorm, [attn.q_proj, attn.k_proj, attn.v_proj])
+        _fold_norm(layer.post_attention_layernorm, [mlp.gate_proj, mlp.up_proj])
+    _fold_norm(inner.norm, [model.lm_head])
+
+    inner.embed_tokens.weight.copy_(inner.embed_tokens.weight.double() @ residual)
+    _rotate_input(model.lm_head, residual)
+    head_dim = layers[0].self_attn.head_dim
+    head = OnlineRotation(head_dim, seed + 1).matrix()
+    for layer in layers:
+        attn, mlp = layer.self_attn, layer.mlp
+        for reader in (attn.q_proj, attn.k_proj, attn.v_proj, mlp.gate_proj, mlp.up_proj):
+            _rotate_input(reader, residual)
+        for writer in (attn.o_proj, mlp.down_proj):
+            _rotate_output(writer, residual)
+        # Values per head: v' = v H (rows of each value head's block), o reads a' = a H per query head.
+        v = attn.v_proj.weight.double().reshape(-1, head_dim, hidden)
+        attn.v_proj.weight.copy_(torch.einsum("ji,gjd->gid", head, v).reshape(-1, hidden))
+        if attn.v_proj.bias is not None:
+            attn.v_proj.bias.copy_((attn.v_proj.bias.double().reshape(-1, head_dim) @ head).reshape(-1))
+        o = attn.o_proj.weight.double().reshape(hidden, -1, head_dim)
+        attn.o_proj.weight.copy_((o @ head).reshape(hidden, -1))
+    online = attach_online_rotations(model, seed)
+    intermediate = online.matrix()
+    for layer in layers:
+        _rotate_input(layer.mlp.down_proj, intermediate)
+    model.dyq_rotation = {"kind": "hadamard", "seed": seed}
+    return model.dyq_rotation
