@@ -19,7 +19,7 @@ import torch
 
 from dyq.results import environment, write_json
 from dyq.sim import action_error, envs
-from dyq.sim.evaluate import checkpoint_digest, default_checkpoint
+from dyq.sim.evaluate import checkpoint_digest, checkpoint_label, default_checkpoint
 from dyq.sim.profile import Store, references
 from dyq.sim.rollout import PolicyRunner
 
@@ -57,7 +57,7 @@ def main(argv: list[str] | None = None) -> int:
         found, tried = references(runner, task, Store(args.cache, task, digest), args.references, env)
         actions = [action_error.width_actions(runner, r) for r in found]
         result = action_error.breakdown(found, actions, runner.dispatch_base, runner.dispatch_prime)
-        result.update(checkpoint=str(checkpoints[task]), checkpoint_digest=digest, seeds=[r.seed for r in found],
+        result.update(checkpoint=checkpoint_label(checkpoints[task]), checkpoint_digest=digest, seeds=[r.seed for r in found],
                       tried_seeds=tried, wall_s=round(time.perf_counter() - begin, 1))
         results["tasks"][task] = result
         print(action_error.markdown(task, result))

@@ -176,6 +176,14 @@ def test_results_merge_keeps_other_rows(tmp_path, monkeypatch):
     assert "| w4a8 |" in evaluate.markdown_table(data)
 
 
+def test_checkpoints_are_named_the_same_wherever_dyq_is_installed(tmp_path, monkeypatch):
+    assert evaluate.checkpoint_label(evaluate.default_checkpoint("lift")) == "dyq/sim/policies/lift"
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "mine").mkdir()
+    assert evaluate.checkpoint_label("mine") == "mine"
+    assert evaluate.checkpoint_label("/") == "/"
+
+
 def test_table_states_whether_the_target_is_met(tmp_path):
     def row(successes, low_share):
         episodes = [{"seed": s, "success": s < successes, "steps": 10,

@@ -43,6 +43,16 @@ TARGET_RETENTION = 0.995
 TARGET_SHARE_BELOW_8 = 0.60
 
 
+def checkpoint_label(checkpoint: str | os.PathLike) -> str:
+    """How results name a checkpoint: a shipped policy as ``dyq/sim/policies/<task>`` wherever dyq is
+    installed, another folder relative to the working directory when inside it, else absolute."""
+    path = Path(checkpoint).resolve()
+    shipped = Path(__file__).resolve().parent / "policies"
+    if path.is_relative_to(shipped):
+        return str(Path("dyq/sim/policies") / path.relative_to(shipped))
+    return str(path.relative_to(Path.cwd())) if path.is_relative_to(Path.cwd()) else str(path)
+
+
 def checkpoint_digest(checkpoint: str | os.PathLike) -> str:
     """First 12 hex digits of the SHA-256 of the checkpoint's weights and config."""
     h = hashlib.sha256()
@@ -240,10 +250,8 @@ def update_results(out: Path, task: str, seeds: list[int], checkpoint: str, dige
     entry = data["tasks"].setdefault(task, {"configs": {}})
     if entry.get("checkpoint_digest") not in (None, digest):
         entry["configs"] = {}  # a retrained policy: the old rows describe another policy
-    checkpoint = Path(checkpoint).resolve()
-    if checkpoint.is_relative_to(Path.cwd()):
-        checkpoint = checkpoint.relative_to(Path.cwd())  # a path that means the same in any checkout
-    entry.update(horizon=envs.spec(task).horizon, seeds=seeds, checkpoint=str(checkpoint), checkpoint_digest=digest)
+    entry.update(horizon=envs.spec(task).horizon, seeds=seeds, checkpoint=checkpoint_label(checkpoint),
+                 checkpoint_digest=digest)
     entry["configs"].update(rows)
     entry["comparisons"] = [c for c in (compare(entry["configs"], a, b) for a, b in COMPARISONS) if c]
     data["device"] = "cpu"

@@ -673,7 +673,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def _header(task: str, checkpoint: Path, digest: str) -> dict:
-    data = {"task": task, "checkpoint": str(checkpoint), "checkpoint_digest": digest, "device": "cpu",
+    from .evaluate import checkpoint_label
+
+    data = {"task": task, "checkpoint": checkpoint_label(checkpoint), "checkpoint_digest": digest, "device": "cpu",
             "environment": results_io.environment()}
     try:
         import mujoco
