@@ -4,8 +4,8 @@ Every episode is cached as one gzipped JSON file keyed by (task, configuration, 
 digest), so an interrupted run resumes, a new configuration adds rows without re-running the others,
 and a retrained checkpoint never mixes with an old one. A configuration that runs the dispatcher (and a
 random schedule drawn from DyQ's episodes) is keyed by its effective dispatcher config as well
-(:func:`config_cache_name`), so a recalibrated or re-budgeted dispatcher never reuses old episodes. After the grid, the summary of every cached
-episode in the grid is merged into ``bench/results/closed_loop.json`` (other tasks and configurations
+(:func:`config_cache_name`), so a recalibrated or re-budgeted dispatcher never reuses old episodes.
+After the grid, the summary of every cached episode in the grid is merged into ``bench/results/closed_loop.json`` (other tasks and configurations
 already there are kept) and the markdown table is rewritten.
 
 Seeds are fixed lists, written into the results: evaluation seeds are ``0 .. episodes-1`` (disjoint from
