@@ -1,63 +1,239 @@
-"""DyQLinear on the CPU at every activation bit-width against torch's nn.Linear in fp32 and bf16.
+"""DyQLinear on the CPU at every activation width against every CPU peer, in one process on the same inputs.
 
-Prints a table of median milliseconds and writes bench/results/linear_cpu.json.
+Peers: torch's fp32 and bf16 ``nn.Linear`` (oneDNN), its INT4 weight-only kernel
+(``_weight_int4pack_mm_for_cpu``, bf16 input, group 128) and its dynamic INT8 linear
+(``torch.ao.quantization.quantize_dynamic``, fp32 input). dyq takes fp32 input, group 128.
 
-    python bench/bench_linear.py              # the full grid
-    python bench/bench_linear.py --quick      # one shape, for a smoke run
-    DYQ_CPU_ISA=avx2 python bench/bench_linear.py --out linear_cpu_avx2.json   # another CPU path
+Each (shape, M) is timed hot (one copy of the weights, resident in the caches as far as they fit) and
+cold (as many copies as fill four times the last-level cache, called in turn, so that every call reads
+its weights from memory). The same run measures the machine's streaming-read bandwidth (a sum over
+1 GiB at the same thread count), and the decode table states dyq's effective bandwidth at M = 1, cold:
+the bytes of its packed weights and scales over the median time.
+
+Prints the tables and writes bench/results/linear_cpu.json (device, CPU flags, versions, threads, shapes,
+medians and the kernel each dyq call ran).
+
+    python bench/bench_linear.py                        # Llama-7B and policy shapes, 1 and 2 threads
+    python bench/bench_linear.py --quick                # one shape, M = 1 and 16, for a smoke run
+    python bench/bench_linear.py --shape 4096x4096 --threads 2 --out linear_4096.json
+    python bench/bench_linear.py --readme bench/results/linear_cpu.json   # the README's table from a JSON
 """
 from __future__ import annotations
 
 import argparse
+import copy
+import json
+import math
+import warnings
+from pathlib import Path
 
 import torch
+import torch.nn.functional as F
 
 import dyq
 from dyq.results import environment, median_ms, print_table, write_json
 
-SHAPES = [(4096, 4096), (11008, 4096), (4096, 11008)]  # (N, K): Llama-2-7B's attention, MLP up, MLP down
-BATCHES = [1, 16, 256]
-BITS = [2, 4, 8, 16]
+GROUP_SIZE = 128
+LLAMA_7B_SHAPES = [(4096, 4096), (11008, 4096), (4096, 11008)]  # (N, K): attention, MLP up/gate, MLP down
+BATCHES = [1, 16, 64, 256]
+BITS = [16, 8, 4, 2]
+PEERS = ["fp32", "bf16", "int8_dynamic", "int4_torch"]
+STREAM_BYTES = 1 << 30
+
+
+def policy_shapes() -> list[tuple[int, int]]:
+    """The (N, K) of the closed-loop policies' layers (python/dyq/sim/policies/*/policy.json)."""
+    shapes = set()
+    for path in sorted((Path(dyq.__file__).parent / "sim" / "policies").glob("*/policy.json")):
+        config = json.loads(path.read_text())
+        hidden, intermediate = config["hidden_size"], config["intermediate_size"]
+        shapes |= {(hidden, hidden), (intermediate, hidden), (hidden, intermediate)}
+    return sorted(shapes)
+
+
+def last_level_cache_bytes() -> int:
+    sizes = []
+    for index in Path("/sys/devices/system/cpu/cpu0/cache").glob("index*"):
+        try:
+            text = (index / "size").read_text().strip()
+        except OSError:
+            continue
+        scale = {"K": 1 << 10, "M": 1 << 20, "G": 1 << 30}.get(text[-1], 1)
+        sizes.append(int(text.rstrip("KMG")) * scale)
+    return max(sizes, default=32 << 20)
+
+
+def cpu_flags() -> list[str]:
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("flags"):
+                flags = line.split(":", 1)[1].split()
+                return sorted(f for f in flags if f.startswith(("avx", "amx", "fma", "f16c")))
+    except OSError:
+        pass
+    return []
+
+
+def stream_read_gbps(repeats: int) -> float:
+    """Bytes per second of a plain streaming sum over 1 GiB (the machine's read bandwidth)."""
+    data = torch.ones(STREAM_BYTES // 4)
+    ms = median_ms(lambda: data.sum(), warmup=1, repeats=repeats)
+    return STREAM_BYTES / ms / 1e6
+
+
+class Rotation:
+    """Calls one of several copies of a layer in turn: one copy is hot, enough copies are cold."""
+
+    def __init__(self, make, weight_bytes: int, cold: bool, cache_bytes: int):
+        copies = max(1, math.ceil(4 * cache_bytes / weight_bytes)) if cold else 1
+        self.layers = [make() for _ in range(copies)]
+        self.next = 0
+
+    def __call__(self, x):
+        layer = self.layers[self.next]
+        self.next = (self.next + 1) % len(self.layers)
+        return layer(x)
+
+
+def int4_torch_layer(weight: torch.Tensor):
+    """torch's INT4 weight-only CPU kernel: asymmetric 4-bit codes (0..15) per group, bf16 scales/zeros."""
+    n, k = weight.shape
+    groups = weight.reshape(n, k // GROUP_SIZE, GROUP_SIZE)
+    lo, hi = groups.amin(-1, keepdim=True), groups.amax(-1, keepdim=True)
+    scale = ((hi - lo) / 15).clamp(min=1e-8)
+    codes = ((groups - lo) / scale).round().clamp(0, 15).to(torch.int32).reshape(n, k)
+    # The kernel dequantizes as (code - 8) * scale + zero.
+    zero = lo + 8 * scale
+    scale_and_zeros = torch.stack([scale.squeeze(-1), zero.squeeze(-1)], -1).transpose(0, 1).contiguous()
+    packed = torch._convert_weight_to_int4pack_for_cpu(codes, 1)
+    scale_and_zeros = scale_and_zeros.bfloat16()
+    return (lambda x: torch._weight_int4pack_mm_for_cpu(x, packed, GROUP_SIZE, scale_and_zeros),
+            packed.nbytes + scale_and_zeros.nbytes)
+
+
+def peer_layers(linear: torch.nn.Linear) -> dict:
+    """name -> (factory of a fresh copy, bytes of its weights, input dtype)."""
+    weight = linear.weight.detach()
+    bf16 = weight.bfloat16()
+    with warnings.catch_warnings():  # torch.ao's deprecation notices: this is the peer being measured
+        warnings.simplefilter("ignore")
+            int8 = torch.ao.quantization.quantize_dynamic(torch.nn.Sequential(linear), {torch.nn.Linear},
+                                                      dtype=torch.qint8)
+    int4_call, int4_bytes = int4_torch_layer(weight)
+    return {
+        "fp32": (lambda: (lambda w: lambda x: F.linear(x, w))(weight.clone()), weight.nbytes, torch.float32),
+        "bf16": (lambda: (lambda w: lambda x: F.linear(x, w))(bf16.clone()), bf16.nbytes, torch.bfloat16),
+        "int8_dynamic": (lambda: copy.deepcopy(int8), weight.numel() + 4 * weight.shape[0], torch.float32),
+        "int4_torch": (lambda: int4_torch_layer(weight)[0], int4_bytes, torch.bfloat16),
+    }
+
+
+def time_shape(n: int, k: int, batches, modes, repeats: int, cache_bytes: int) -> list[dict]:
+    torch.manual_seed(0)
+    linear = torch.nn.Linear(k, n, bias=False)
+    peers = peer_layers(linear)
+    layer = dyq.DyQLinear.from_linear(linear, group_size=GROUP_SIZE)
+    dyq_bytes = layer.qweight.nbytes + layer.scales.nbytes
+    results = []
+    for mode in modes:
+        cold = mode == "cold"
+        rotations = {name: (Rotation(make, size, cold, cache_bytes), dtype) for name, (make, size, dtype) in peers.items()}
+        dyq_rotation = Rotation(lambda: copy.deepcopy(layer), dyq_bytes, cold, cache_bytes)
+        for m in batches:
+            x = torch.randn(m, k)
+            reps = max(5, repeats // 3) if m >= 64 else repeats
+            timings, kernels = {}, {}
+            with torch.inference_mode():
+                for name, (rotation, dtype) in rotations.items():
+                    inputs = x.to(dtype)
+                    timings[name] = median_ms(lambda: rotation(inputs), repeats=reps)
+                for bits in BITS:
+                    for copy_ in dyq_rotation.layers:
+                        copy_.act_bits = bits
+                    timings[f"w4a{bits}"] = median_ms(lambda: dyq_rotation(x), repeats=reps)
+                    kernels[f"w4a{bits}"] = dyq.cpu_gemm_kernel(m, k, GROUP_SIZE, bits)
+            results.append({"m": m, "n": n, "k": k, "mode": mode, "group_size": GROUP_SIZE, "median_ms": timings,
+                            "dyq_kernel": kernels, "copies": len(dyq_rotation.layers),
+                            "weight_bytes": {"dyq": dyq_bytes, **{p: peers[p][1] for p in peers}}})
+    return results
+
+
+def print_results(threads: int, stream_gbps: float, results: list[dict]) -> None:
+    columns = PEERS + [f"w4a{b}" for b in BITS]
+    rows = []
+    for r in results:
+        t = r["median_ms"]
+        ratio = lambda b: f"{t['bf16'] / t[f'w4a{b}']:.2f}x"  # noqa: E731
+        rows.append([r["m"], f"{r['n']}x{r['k']}", r["mode"]] + [f"{t[c]:.3f}" for c in columns]
+                    + [ratio(b) for b in BITS])
+    headers = ["M", "NxK", "weights"] + ["fp32", "bf16", "int8 dyn", "int4 torch"] \
+        + [f"W4A{b}" for b in BITS] + [f"bf16/A{b}" for b in BITS]
+    print_table(headers, rows, title=f"\n{threads} thread(s): median ms, and torch bf16 time over dyq's")
+    rows = []
+    for r in results:
+        if r["m"] != 1 or r["mode"] != "cold":
+            continue
+        t = r["median_ms"]
+        row = [f"{r['n']}x{r['k']}", f"{stream_gbps:.1f}"]
+        for b in BITS:
+            gbps = r["weight_bytes"]["dyq"] / t[f"w4a{b}"] / 1e6
+            row.append(f"{gbps:.1f} ({100 * gbps / stream_gbps:.0f} %)")
+        rows.append(row)
+    if rows:
+        print_table(["NxK", "stream GB/s"] + [f"W4A{b} GB/s" for b in BITS], rows,
+                    title=f"\n{threads} thread(s): decode (M = 1, cold) bytes of packed weights + scales per second")
+
+
+def readme_table(payload: dict, shapes=LLAMA_7B_SHAPES) -> str:
+    """The README's CPU table: Llama-7B shapes, cold weights, the most threads measured."""
+    threads = max(run["threads"] for run in payload["runs"])
+    run = next(r for r in payload["runs"] if r["threads"] == threads)
+    lines = ["| M | N x K | fp32 | bf16 | int8 dyn. | int4 torch | W4A16 | W4A8 | W4A4 | W4A2 |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
+    for r in run["results"]:
+        if r["mode"] != "cold" or (r["n"], r["k"]) not in shapes:
+            continue
+        t = r["median_ms"]
+        cells = [f"{t[p]:.2f}" for p in PEERS]
+        cells += [f"{t[f'w4a{b}']:.2f} ({t['bf16'] / t[f'w4a{b}']:.1f}x)" for b in BITS]
+        lines.append(f"| {r['m']} | {r['n']} x {r['k']} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--quick", action="store_true", help="one small shape only")
+    parser.add_argument("--quick", action="store_true", help="one shape, M = 1 and 16")
     parser.add_argument("--shape", action="append", metavar="NxK", help="only these (N, K) shapes (repeatable)")
+    parser.add_argument("--batches", type=int, nargs="+", default=BATCHES)
+    parser.add_argument("--threads", type=int, nargs="+", default=[1, 2])
+    parser.add_argument("--modes", nargs="+", choices=["hot", "cold"], default=["hot", "cold"])
     parser.add_argument("--repeats", type=int, default=15)
     parser.add_argument("--out", default="linear_cpu.json")
+    parser.add_argument("--readme", metavar="JSON", help="print the README's table from a results file, then exit")
     args = parser.parse_args()
-    shapes, batches = ([(4096, 4096)], [1, 16]) if args.quick else (SHAPES, BATCHES)
+    if args.readme:
+        print(readme_table(json.loads(Path(args.readme).read_text())))
+        return
+    shapes, batches = LLAMA_7B_SHAPES + policy_shapes(), args.batches
+    if args.quick:
+        shapes, batches = [(4096, 4096)], [1, 16]
     if args.shape:
         shapes = [tuple(int(v) for v in shape.lower().split("x")) for shape in args.shape]
+    cache_bytes = last_level_cache_bytes()
 
-    torch.manual_seed(0)
-    rows, results = [], []
-    for n, k in shapes:
-        linear = torch.nn.Linear(k, n, bias=False)
-        linear_bf16 = torch.nn.Linear(k, n, bias=False).to(torch.bfloat16)
-        layer = dyq.DyQLinear.from_linear(linear, group_size=128)
-        for m in batches:
-            x = torch.randn(m, k)
-            x_bf16 = x.bfloat16()
-            with torch.inference_mode():
-                timings = {
-                    "fp32": median_ms(lambda: linear(x), repeats=args.repeats),
-                    "bf16": median_ms(lambda: linear_bf16(x_bf16), repeats=args.repeats),
-                }
-                for bits in BITS:
-                    layer.act_bits = bits
-                    timings[f"w4a{bits}"] = median_ms(lambda: layer(x), repeats=args.repeats)
-            speedups = {key: timings["fp32"] / timings[key] for key in timings}
-            results.append({"m": m, "n": n, "k": k, "group_size": 128, "median_ms": timings,
-                            "speedup_vs_fp32": speedups})
-            rows.append([m, n, k] + [f"{timings[key]:.2f}" for key in timings]
-                        + [f"{min(speedups[f'w4a{b}'] for b in BITS):.2f}x"])
-
-    headers = ["M", "N", "K", "fp32", "bf16"] + [f"W4A{b}" for b in BITS] + ["min speedup vs fp32"]
-    isa = dyq.cpu_info()["isa"]
-    print_table(headers, rows, title=f"DyQLinear on the CPU ({isa} path), median ms (input fp32, group 128)")
-    path = write_json(args.out, {"benchmark": "linear_cpu", "environment": environment(), "results": results})
+    runs = []
+    for threads in args.threads:
+        torch.set_num_threads(threads)
+        stream_gbps = stream_read_gbps(args.repeats)
+        results = [r for n, k in shapes for r in time_shape(n, k, batches, args.modes, args.repeats, cache_bytes)]
+        print_results(threads, stream_gbps, results)
+        runs.append({"threads": threads, "stream_read_gbps": stream_gbps, "stream_bytes": STREAM_BYTES,
+                     "results": results})
+    payload = {"benchmark": "linear_cpu", "environment": {**environment(), "cpu_flags": cpu_flags(),
+                                                          "last_level_cache_bytes": cache_bytes,
+                                                          "dyq_cpu_paths": dyq.cpu_info()["runnable"]},
+               "group_size": GROUP_SIZE, "peers": PEERS, "runs": runs}
+    path = write_json(args.out, payload)
     print(f"\nwrote {path}")
 
 

@@ -18,6 +18,8 @@ struct CpuKernelSet {
                int64_t m, int64_t n, int64_t k, int group_size, int act_bits, void* out);
   void (*quantize_activations)(const void* x, ScalarType dtype, int64_t m, int64_t k, int group_size, int act_bits,
                                uint8_t* packed, float* scales, uint8_t* zeros);
+  // The name of the kernel that gemm runs for these arguments (benchmarks record it).
+  const char* (*gemm_kernel)(int64_t m, int64_t k, int group_size, int act_bits);
 };
 
 struct CpuPath {

@@ -1,5 +1,5 @@
 // The entry points of one path's kernels. Each cpu/kernels_<isa>.cpp includes this last, after the
-// header that defines the path's gemm_typed (and, through it, quantize_activation_row), and so defines
+// header that defines the path's gemm_typed and gemm_kernel (and, through it, quantize_activation_row), and so defines
 // dyq::cpu::<isa>::kernels, the entry of the dispatch table (cpu/cpu_isa.cpp). The entry points are
 // baseline code outside the target region: they only choose the element type and width, then call in.
 #pragma once
@@ -135,6 +135,6 @@ bool gemm(const void* x, ScalarType dtype, const uint8_t* qweight, const float* 
 
 }  // namespace
 
-extern const CpuKernelSet kernels = {gemm, quantize_activations};
+extern const CpuKernelSet kernels = {gemm, quantize_activations, gemm_kernel};
 
 }  // namespace dyq::cpu::DYQ_ISA_NAMESPACE

@@ -224,5 +224,9 @@ void gemm_typed(const Element* x, const uint8_t* qweight, const float* scales, c
   }
 }
 
+inline const char* gemm_kernel(int64_t, int64_t, int, int act_bits) {
+  return act_bits == kFallbackBits ? "avx2/rows-fp32" : "avx2/rows-maddubs";
+}
+
 }  // namespace dyq::cpu::avx2
 DYQ_ISA_END

@@ -499,5 +499,10 @@ void gemm_typed(const Element* x, const uint8_t* qweight, const float* scales, c
   }
 }
 
+inline const char* gemm_kernel(int64_t m, int64_t, int, int act_bits) {
+  if (act_bits == kFallbackBits) return m >= kPanelMinRows ? "avx512/panel-fp32" : "avx512/rows-fp32";
+  return m >= kPanelMinRows ? "avx512/panel-vnni" : "avx512/rows-vnni";
+}
+
 }  // namespace dyq::cpu::avx512
 DYQ_ISA_END

@@ -100,4 +100,8 @@ void gemm_typed(const Element* x, const uint8_t* qweight, const float* scales, c
   });
 }
 
+inline const char* gemm_kernel(int64_t, int64_t, int, int act_bits) {
+  return act_bits == kFallbackBits ? "portable/eigen-fp32" : "portable/eigen-integer-fp32";
+}
+
 }  // namespace dyq::cpu::portable

@@ -61,9 +61,24 @@ PyObject* cpu_isa(PyObject*, PyObject*) {
   return Py_BuildValue("(sNN)", active, runnable_names, compiled_names);
 }
 
+// The kernel the active path's GEMM runs for (m, k, group_size, act_bits), e.g. "avx512/panel-vnni".
+PyObject* cpu_gemm_kernel(PyObject*, PyObject* args) {
+  long long m = 0, k = 0;
+  int group_size = 0, act_bits = 0;
+  if (!PyArg_ParseTuple(args, "LLii", &m, &k, &group_size, &act_bits)) return nullptr;
+  try {
+    return PyUnicode_FromString(dyq::cpu::active_cpu_path().kernels->gemm_kernel(m, k, group_size, act_bits));
+  } catch (const std::invalid_argument& error) {
+    PyErr_SetString(PyExc_ValueError, error.what());
+    return nullptr;
+  }
+}
+
 PyMethodDef methods[] = {
     {"cpu_isa", cpu_isa, METH_NOARGS,
      "(active CPU path, paths this CPU can execute, paths compiled in), by their DYQ_CPU_ISA names."},
+    {"cpu_gemm_kernel", cpu_gemm_kernel, METH_VARARGS,
+     "cpu_gemm_kernel(m, k, group_size, act_bits): the kernel the active CPU path's GEMM runs for them."},
     {"gemm_width_counts", gemm_width_counts, METH_NOARGS,
      "GEMM calls of this process per registered activation width, in the order of ACTIVATION_BITS."},
     {"reset_gemm_width_counts", reset_gemm_width_counts, METH_NOARGS, "Set every GEMM width count to 0."},

@@ -13,7 +13,7 @@ from .control.dispatch import DispatchConfig, Hysteresis, KinematicDispatcher, P
 from .control.flag import PrecisionFlag
 from .control.runtime import DyQRuntime, StepStats, force_precision
 from .core import ops, reference
-from .core.cpu import cpu_info
+from .core.cpu import cpu_gemm_kernel, cpu_info
 from .core.linear import DyQLinear
 from .core.precision import FALLBACK_BITS, GROUP_SIZES, VALID_BITS
 from .core.quantize import QuantizationReport, bind_flag, model_flag, quantize_model, set_precision
@@ -45,6 +45,7 @@ __all__ = [
     "QuantizationReport",
     "VALID_BITS",
     "bind_flag",
+    "cpu_gemm_kernel",
     "cpu_info",
     "load_quantized",
     "model_flag",

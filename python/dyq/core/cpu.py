@@ -18,3 +18,12 @@ def cpu_info() -> dict:
     isa, runnable, compiled = _C.cpu_isa()
     return {"isa": isa, "runnable": list(runnable), "compiled": list(compiled),
             "forced": os.environ.get("DYQ_CPU_ISA") or None}
+
+
+def cpu_gemm_kernel(m: int, k: int, group_size: int, act_bits: int) -> str:
+    """The kernel the active CPU path runs for an ``[m, k]`` input at ``act_bits``, as ``"<path>/<kernel>"``
+    (e.g. ``"avx512/panel-vnni"``): which instructions do the work, for benchmarks to record."""
+    from .precision import check_bits, check_group_size
+
+    check_group_size(group_size)
+    return _C.cpu_gemm_kernel(int(m), int(k), int(group_size), check_bits(act_bits, "act_bits"))
