@@ -117,7 +117,7 @@ def peer_layers(linear: torch.nn.Linear) -> dict:
     bf16 = weight.bfloat16()
     with warnings.catch_warnings():  # torch.ao's deprecation notices: this is the peer being measured
         warnings.simplefilter("ignore")
-            int8 = torch.ao.quantization.quantize_dynamic(torch.nn.Sequential(linear), {torch.nn.Linear},
+        int8 = torch.ao.quantization.quantize_dynamic(torch.nn.Sequential(linear), {torch.nn.Linear},
                                                       dtype=torch.qint8)
     int4_call, int4_bytes = int4_torch_layer(weight)
     return {
