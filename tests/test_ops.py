@@ -1,7 +1,7 @@
 """torch.ops.dyq on CPU tensors against the float64 reference of docs/numerics.md."""
 import pytest
 import torch
-from helpers import DTYPES, assert_gemm_close, random_activations, random_weight
+from helpers import DTYPES, assert_gemm_close, bf16_fallback, random_activations, random_weight
 
 import dyq
 from dyq import reference
@@ -146,7 +146,8 @@ def test_error_shrinks_as_bits_grow_on_realistic_inputs(rng):
     errors = {b: ((dyq.ops.gemm(x, qweight, scales, 128, b).double() - exact).norm() / exact.norm()).item()
               for b in ACT_BITS}
     assert errors[2] > errors[4] > errors[8] > errors[16]
-    assert errors[16] < 1e-5 and errors[8] < 0.02 and errors[2] < 1.0
+    # bf16 dot products round x to bf16 (relative error at most 2^-8); fp32 ones keep it.
+    assert errors[16] < (2.0**-8 if bf16_fallback(32, 1024, 128) else 1e-5) and errors[8] < 0.02 and errors[2] < 1.0
 
 
 @pytest.mark.parametrize("act_bits", ACT_BITS)

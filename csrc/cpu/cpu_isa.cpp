@@ -8,6 +8,9 @@
 namespace dyq::cpu {
 
 #if defined(__x86_64__)
+namespace avx512_bf16 {
+extern const CpuKernelSet kernels;
+}
 namespace avx512 {
 extern const CpuKernelSet kernels;
 }
@@ -29,6 +32,8 @@ bool avx512_runs_here() {
          __builtin_cpu_supports("avx512dq") && __builtin_cpu_supports("avx512vl") &&
          __builtin_cpu_supports("avx512vnni") && __builtin_cpu_supports("avx512vbmi");
 }
+
+bool avx512_bf16_runs_here() { return avx512_runs_here() && __builtin_cpu_supports("avx512bf16"); }
 
 bool avx2_runs_here() {
   __builtin_cpu_init();
@@ -61,10 +66,11 @@ const CpuPath& choose_path() {
 }  // namespace
 
 const std::vector<CpuPath>& cpu_paths() {
-  // Best first. Another path (the AMX or AVX512-BF16 GEMMs, say) is one entry here, one
+  // Best first. Another path is one entry here, one
   // cpu/kernels_<isa>.cpp and its name and target in cpu/isa_region.h.
   static const std::vector<CpuPath> paths = {
 #if defined(__x86_64__)
+      {"avx512_bf16", "AVX-512 F/BW/DQ/VL with VNNI, VBMI and BF16", avx512_bf16_runs_here, &avx512_bf16::kernels},
       {"avx512", "AVX-512 F/BW/DQ/VL with VNNI and VBMI", avx512_runs_here, &avx512::kernels},
       {"avx2", "AVX2 with FMA and F16C", avx2_runs_here, &avx2::kernels},
 #endif

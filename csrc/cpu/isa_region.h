@@ -11,19 +11,37 @@
 // may still be inlined into the kernels. Headers that use DYQ_ISA_BEGIN therefore include everything
 // they need first.
 //
-// A kernel file defines one of DYQ_CPU_ISA_AVX512 / DYQ_CPU_ISA_AVX2 before its first include; without
-// either it is the portable path (plain C++ and Eigen at the compiler's baseline: SSE2 on x86-64, NEON
-// on aarch64).
-#pragma once
-
-#if defined(DYQ_CPU_ISA_AVX512)
+// A kernel file defines one of DYQ_CPU_ISA_AVX512_AMX / DYQ_CPU_ISA_AVX512_BF16 / DYQ_CPU_ISA_AVX512 /
+// DYQ_CPU_ISA_AVX2 before its first include; without any it is the portable path (plain C++ and Eigen at
+// the compiler's baseline: SSE2 on x86-64, NEON on aarch64). The AMX and BF16 paths are the AVX-512 one
+// with more instructions: they define DYQ_CPU_ISA_AVX512 too (the family the shared x86 helpers test) and
+// DYQ_AVX512_HAS_BF16 / DYQ_AVX512_HAS_AMX for the kernels that use them. DYQ_ISA_NAME is the path's
+// DYQ_CPU_ISA value.
+#if defined(DYQ_CPU_ISA_AVX512_AMX)
+#define DYQ_CPU_ISA_AVX512 1
+#define DYQ_AVX512_HAS_BF16 1
+#define DYQ_AVX512_HAS_AMX 1
+#define DYQ_ISA_NAMESPACE avx512_amx
+#define DYQ_ISA_NAME "amx"
+#define DYQ_ISA_TARGET \
+  "avx512f,avx512bw,avx512dq,avx512vl,avx512vnni,avx512vbmi,avx512bf16,amx-tile,amx-int8,avx2,fma,f16c"
+#elif defined(DYQ_CPU_ISA_AVX512_BF16)
+#define DYQ_CPU_ISA_AVX512 1
+#define DYQ_AVX512_HAS_BF16 1
+#define DYQ_ISA_NAMESPACE avx512_bf16
+#define DYQ_ISA_NAME "avx512_bf16"
+#define DYQ_ISA_TARGET "avx512f,avx512bw,avx512dq,avx512vl,avx512vnni,avx512vbmi,avx512bf16,avx2,fma,f16c"
+#elif defined(DYQ_CPU_ISA_AVX512)
 #define DYQ_ISA_NAMESPACE avx512
+#define DYQ_ISA_NAME "avx512"
 #define DYQ_ISA_TARGET "avx512f,avx512bw,avx512dq,avx512vl,avx512vnni,avx512vbmi,avx2,fma,f16c"
 #elif defined(DYQ_CPU_ISA_AVX2)
 #define DYQ_ISA_NAMESPACE avx2
+#define DYQ_ISA_NAME "avx2"
 #define DYQ_ISA_TARGET "avx2,fma,f16c"
 #else
 #define DYQ_ISA_NAMESPACE portable
+#define DYQ_ISA_NAME "portable"
 #endif
 
 #if defined(DYQ_ISA_TARGET)

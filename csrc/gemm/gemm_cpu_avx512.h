@@ -33,13 +33,11 @@
 #include "parallel/parallel.h"
 
 DYQ_ISA_BEGIN
-namespace dyq::cpu::avx512 {
+namespace dyq::cpu::DYQ_ISA_NAMESPACE {
 
 constexpr int64_t kBlockColumns = 128;  // columns in 64 bytes of packed weights
 constexpr int64_t kChunkColumns = 32;   // act_bits 16: columns in 16 bytes of packed weights
 constexpr int kMaxTileRows = 8;         // activation rows that share one pass over a weight row
-// From this many activation rows on, the panel path (measured crossover between 8 and 16 rows).
-constexpr int64_t kPanelMinRows = 12;
 
 // Cache-line aligned storage, so that full-vector loads never split a line.
 template <typename T>
@@ -101,6 +99,9 @@ std::vector<QuantizedBlock> quantize_activation_blocks(const Element* x, int64_t
   });
   return quantized;
 }
+
+// Columns rounded up to whole 128-column blocks: the row pitch of the panels' act_bits 16 operands.
+inline int64_t block_padded(int64_t k) { return (k + kBlockColumns - 1) / kBlockColumns * kBlockColumns; }
 
 // Columns rounded up to whole 32-column chunks: the row pitch of the act_bits 16 operand.
 inline int64_t chunk_padded(int64_t k) { return (k + kChunkColumns - 1) / kChunkColumns * kChunkColumns; }
@@ -213,224 +214,318 @@ void fp32_row_kernel(const uint8_t* weight_row, const float* scales_row, int64_t
 
 #include "gemm/gemm_cpu_row_tiles.inc"
 
+#if defined(DYQ_AVX512_HAS_BF16)
+// act_bits 16 on CPUs with AVX512-BF16: x rounded to bf16 (round to nearest even), stored as it comes in
+// rows of kBlockColumns-padded columns (zeros past k), so that the dword at column 2c is the bf16 pair
+// (x[2c], x[2c + 1]) that one vdpbf16ps lane multiplies with the codes of the same two columns.
+template <typename Element>
+AlignedVector<uint16_t> bf16_activations(const Element* x, int64_t m, int64_t k) {
+  const int64_t pitch = block_padded(k);
+  AlignedVector<uint16_t> rounded(m * pitch);
+  parallel_for(0, m, 4, [&](int64_t row_begin, int64_t row_end) {
+    std::vector<float> row(pitch, 0.0f);
+    for (int64_t r = row_begin; r < row_end; ++r) {
+      load_row_fp32(x + r * k, k, row.data());
+      for (int64_t c = 0; c < pitch; c += 16) {
+        const __m256bh halves = _mm512_cvtneps_pbh(_mm512_loadu_ps(row.data() + c));
+        std::memcpy(&rounded[r * pitch + c], &halves, sizeof(halves));
+      }
+    }
+  });
+  return rounded;
+}
+
+// The bf16 bit patterns of the 16 weight codes, indexed by nibble (exact: |q_w| <= 8).
+inline __m512i bf16_code_table() {
+  alignas(64) uint16_t table[32] = {};
+  for (uint32_t nibble = 0; nibble < 16; ++nibble) {
+    const float code = static_cast<float>(sign_extend_nibble(nibble));
+    uint32_t bits;
+    std::memcpy(&bits, &code, sizeof(bits));
+    table[nibble] = static_cast<uint16_t>(bits >> 16);
+  }
+  return _mm512_load_si512(table);
+}
+
+// 16 dwords, each holding one packed weight byte in its low byte (columns 2c, 2c + 1), to bf16 pairs:
+// the low nibble to the low word, the high nibble to the high word, then both through the code table.
+inline __m512i bf16_code_pairs(__m512i bytes, __m512i table) {
+  // (bytes | bytes << 12) & 0x000F000F: the low nibble in bits 0..3, the high one in bits 16..19.
+  const __m512i nibbles = _mm512_ternarylogic_epi32(bytes, slli_epi32(bytes, 12), _mm512_set1_epi32(0x000F000F), 0xA8);
+  return _mm512_permutexvar_epi16(nibbles, table);
+}
+
+inline __m512 dot_bf16_pairs(__m512 acc, __m512i a, __m512i b) {
+  return _mm512_dpbf16_ps(acc, reinterpret_cast<__m512bh&>(a), reinterpret_cast<__m512bh&>(b));
+}
+
+// sums[r] = y[r] (without bias) for one weight row and kRows bf16 activation rows.
+template <int kRows>
+void bf16_row_kernel(const uint8_t* weight_row, const float* scales_row, int64_t k, int group_size,
+                     const uint16_t* const* rows, float* sums) {
+  const __m512i table = bf16_code_table();
+  __m512 acc[kRows];
+  for (int r = 0; r < kRows; ++r) acc[r] = _mm512_setzero_ps();
+  for (int64_t g = 0; g < group_count(k, group_size); ++g) {
+    __m512 group_acc[kRows];
+    for (int r = 0; r < kRows; ++r) group_acc[r] = _mm512_setzero_ps();
+    const int64_t group_end = std::min<int64_t>((g + 1) * group_size, k);
+    for (int64_t c = g * group_size; c < group_end; c += kChunkColumns) {
+      const int64_t bytes = std::min<int64_t>(16, (k - c) / 2);  // the bytes past k read as code 0
+      const __m128i packed = _mm_maskz_loadu_epi8(static_cast<__mmask16>((1u << bytes) - 1), weight_row + c / 2);
+      const __m512i codes = bf16_code_pairs(cvtepu8_epi32(packed), table);
+      for (int r = 0; r < kRows; ++r) group_acc[r] = dot_bf16_pairs(group_acc[r], _mm512_loadu_si512(rows[r] + c), codes);
+    }
+    const __m512 scale = _mm512_set1_ps(scales_row[g]);
+    for (int r = 0; r < kRows; ++r) acc[r] = _mm512_fmadd_ps(group_acc[r], scale, acc[r]);
+  }
+  for (int r = 0; r < kRows; ++r) sums[r] = reduce_lanes<AddLanes>(acc[r]);
+}
+#endif
+
 // ---- panel path for many activation rows -------------------------------------------------------
 //
-// For large m the work is compute-bound, so the weights are unpacked once per call into panels of
-// kPanelColumns weight rows by kPanelDepth columns, transposed so that one micro-kernel step loads the
-// codes of all 32 output columns as two vectors and multiplies them with a broadcast activation: 32
-// output columns x kPanelTileRows activation rows of accumulators stay in registers for a whole group,
-// whose scales are then applied once. act_bits 2/4/8 step over 4 columns with vpdpbusd (u8 q_x
-// broadcast as a dword, s8 q_w) and correct the zero point per group as in the row kernel; act_bits
-// 16 step over one column with fp32 FMAs.
-constexpr int64_t kPanelColumns = 32;
-constexpr int kPanelTileRows = 6;  // 12 accumulators; 8 or 12 rows measured slower
-constexpr int64_t kPanelDepth = 512;  // a multiple of 128, hence of every group size
+// For larger m the work is bound by arithmetic, so the packed weights are rearranged once per call into
+// panels of kPanelColumns weight rows by kPanelDepth columns, in which one vector holds the codes of the
+// same columns of 16 weight rows: a micro-kernel step multiplies it with one broadcast activation dword,
+// and 32 output columns x kPanelTileRows activation rows of accumulators stay in registers for a whole
+// group, whose scales are then applied once.
+//
+// Packing reads 16 weight rows x 64 bytes (128 columns) and transposes them as a 16 x 16 matrix of
+// dwords, so that vector q holds dword q of each row: columns 8q..8q+7 of 16 weight rows, the low
+// nibbles the even columns, the high nibbles the odd ones. Each panel kind turns that vector into its
+// steps (PanelKind::kSteps per 8 columns):
+// - VnniPanel (act_bits 2/4/8): the s8 codes of the low and of the high nibbles, which vpdpbusd
+//   multiplies with a broadcast dword of the activations' even and odd codes (QuantizedBlock, the
+//   layout of the row kernel), four columns per lane; z_x * sum(q_w) is subtracted per group as there.
+// - Bf16Panel (act_bits 16, AVX512-BF16): the bf16 pairs of columns (8q + 2b, 8q + 2b + 1), which
+//   vdpbf16ps multiplies with the broadcast bf16 pair of x at the same columns.
+// - Fp32Panel (act_bits 16 elsewhere): the fp32 code of each of the 8 columns, one FMA with a broadcast x.
+// The weights past k load as 0 and the activations past k are 0, so the last group, which holds the
+// remainder when G does not divide k, gets only its own columns.
+constexpr int64_t kPanelColumns = 32;  // two halves of 16 lanes
+constexpr int kPanelTileRows = 8;       // 16 accumulators, 2 weight vectors, the broadcasts
+constexpr int64_t kPanelDepth = 256;    // a multiple of 128, hence of every group size
+constexpr int64_t kQuadColumns = 8;     // columns in one dword of packed weights
+constexpr int64_t kPanelQuads = kPanelDepth / kQuadColumns;
+constexpr int64_t kPanelGroups = kPanelDepth / 32;  // at the smallest group size
 
-// Weight row segment -> one s8 code per column (columns a multiple of 32).
-inline void unpack_weight_codes(const uint8_t* packed, int64_t columns, int8_t* codes) {
-  alignas(64) uint8_t first_indices[64], second_indices[64];
-  for (int i = 0; i < 32; ++i) {
-    first_indices[2 * i] = static_cast<uint8_t>(i);  // low nibble of byte i: column 2i
-    first_indices[2 * i + 1] = static_cast<uint8_t>(64 + i);
-    second_indices[2 * i] = static_cast<uint8_t>(32 + i);
-    second_indices[2 * i + 1] = static_cast<uint8_t>(96 + i);
+// rows[i] (dwords 0..15 of row i) becomes rows[q] = dword q of rows 0..15 (vector lane i).
+inline void transpose_16x16_dwords(__m512i rows[16]) {
+  __m512i t[16], u[16];
+  for (int i = 0; i < 8; ++i) {
+    t[2 * i] = _mm512_maskz_unpacklo_epi32(kAll16, rows[2 * i], rows[2 * i + 1]);
+    t[2 * i + 1] = _mm512_maskz_unpackhi_epi32(kAll16, rows[2 * i], rows[2 * i + 1]);
   }
-  const __m512i first_order = _mm512_load_si512(first_indices), second_order = _mm512_load_si512(second_indices);
-  auto prefix_mask = [](int64_t count) { return count >= 64 ? ~__mmask64{0} : (__mmask64{1} << count) - 1; };
-  for (int64_t c = 0; c < columns; c += kBlockColumns) {
-    const int64_t count = std::min(kBlockColumns, columns - c);
-    __m512i even, odd;
-    split_weight_nibbles(_mm512_maskz_loadu_epi8(prefix_mask(count / 2), packed + c / 2), even, odd);
-    _mm512_mask_storeu_epi8(codes + c, prefix_mask(count), _mm512_permutex2var_epi8(even, first_order, odd));
-    if (count > 64) {
-      _mm512_mask_storeu_epi8(codes + c + 64, prefix_mask(count - 64),
-                              _mm512_permutex2var_epi8(even, second_order, odd));
-    }
+  // u[4i + j], 128-bit lane L: column 4L + j of rows 4i..4i+3.
+  for (int i = 0; i < 4; ++i) {
+    u[4 * i] = _mm512_maskz_unpacklo_epi64(0xFF, t[4 * i], t[4 * i + 2]);
+    u[4 * i + 1] = _mm512_maskz_unpackhi_epi64(0xFF, t[4 * i], t[4 * i + 2]);
+    u[4 * i + 2] = _mm512_maskz_unpacklo_epi64(0xFF, t[4 * i + 1], t[4 * i + 3]);
+    u[4 * i + 3] = _mm512_maskz_unpackhi_epi64(0xFF, t[4 * i + 1], t[4 * i + 3]);
+  }
+  for (int j = 0; j < 4; ++j) {
+    const __m512i s0 = _mm512_maskz_shuffle_i32x4(kAll16, u[j], u[4 + j], 0x44);
+    const __m512i s1 = _mm512_maskz_shuffle_i32x4(kAll16, u[j], u[4 + j], 0xEE);
+    const __m512i s2 = _mm512_maskz_shuffle_i32x4(kAll16, u[8 + j], u[12 + j], 0x44);
+    const __m512i s3 = _mm512_maskz_shuffle_i32x4(kAll16, u[8 + j], u[12 + j], 0xEE);
+    rows[j] = _mm512_maskz_shuffle_i32x4(kAll16, s0, s2, 0x88);
+    rows[4 + j] = _mm512_maskz_shuffle_i32x4(kAll16, s0, s2, 0xDD);
+    rows[8 + j] = _mm512_maskz_shuffle_i32x4(kAll16, s1, s3, 0x88);
+    rows[12 + j] = _mm512_maskz_shuffle_i32x4(kAll16, s1, s3, 0xDD);
   }
 }
 
-template <bool kQuantized>
-struct WeightPanel {
-  // kQuantized: [depth / 4][32] dwords, the 4 s8 codes of columns 4t..4t+3 of each output column.
-  // Otherwise: [depth][32] fp32 codes.
-  using Step = std::conditional_t<kQuantized, int32_t, float>;
-  static constexpr int64_t kStepColumns = kQuantized ? 4 : 1;
-  std::vector<int8_t> row_codes = std::vector<int8_t>(kPanelColumns * kPanelDepth);  // [32][depth]
-  AlignedVector<Step> steps = AlignedVector<Step>(kPanelColumns * kPanelDepth / kStepColumns);
-  AlignedVector<float> scales = AlignedVector<float>(kPanelColumns * kPanelDepth / 32);       // [group][32]
-  AlignedVector<float> weight_sums = AlignedVector<float>(kPanelColumns * kPanelDepth / 32);  // [group][32]
+struct VnniPanel {
+  static constexpr int kSteps = 2;
+  static constexpr bool kWeightSums = true;
+  using Row = const QuantizedBlock*;
+  using Accumulator = __m512i;
+  static const char* name() { return "vnni"; }
+  static void steps(__m512i quad, __m512i* out) { split_weight_nibbles(quad, out[0], out[1]); }
+  static Row advance(Row row, int64_t columns) { return row + columns / kBlockColumns; }
+  static Accumulator zero() { return _mm512_setzero_si512(); }
+  static __m512i broadcast(Row row, int64_t quad, int step) {
+    const QuantizedBlock& block = row[quad / 16];
+    int32_t codes;
+    std::memcpy(&codes, (step == 0 ? block.even_codes : block.odd_codes) + 4 * (quad % 16), 4);
+    return _mm512_set1_epi32(codes);
+  }
+  static Accumulator madd(Accumulator acc, __m512i activations, __m512i weights) {
+    return _mm512_dpbusd_epi32(acc, activations, weights);
+  }
+  // total += s_x s_w (P - z_x sum q_w) for the group whose first quad is `quad`.
+  static __m512 scaled(Accumulator acc, Row row, int64_t quad, __m512 weight_scales, __m512 weight_sums) {
+    const QuantizedBlock& block = row[quad / 16];
+    const __m512 partial = _mm512_fnmadd_ps(weight_sums, _mm512_set1_ps(block.zero_lanes[quad % 16]), cvtepi32_ps(acc));
+    return _mm512_mul_ps(partial, _mm512_mul_ps(weight_scales, _mm512_set1_ps(block.scale_lanes[quad % 16])));
+  }
+};
 
-  // Columns [col_begin, col_begin + depth) of weight rows [row_begin, row_begin + 32); rows past n read as 0.
+#if defined(DYQ_AVX512_HAS_BF16)
+struct Bf16Panel {
+  static constexpr int kSteps = 4;
+  static constexpr bool kWeightSums = false;
+  using Row = const uint16_t*;
+  using Accumulator = __m512;
+  static const char* name() { return "bf16"; }
+  static void steps(__m512i quad, __m512i* out) {
+    const __m512i table = bf16_code_table();
+    const __m512i low_byte = _mm512_set1_epi32(0xFF);
+    for (int b = 0; b < 4; ++b) out[b] = bf16_code_pairs(_mm512_and_si512(srli_epi32(quad, 8 * b), low_byte), table);
+  }
+  static Row advance(Row row, int64_t columns) { return row + columns; }
+  static Accumulator zero() { return _mm512_setzero_ps(); }
+  static __m512i broadcast(Row row, int64_t quad, int step) {
+    int32_t pair;
+    std::memcpy(&pair, row + quad * kQuadColumns + 2 * step, 4);
+    return _mm512_set1_epi32(pair);
+  }
+  static Accumulator madd(Accumulator acc, __m512i activations, __m512i weights) {
+    return dot_bf16_pairs(acc, activations, weights);
+  }
+  static __m512 scaled(Accumulator acc, Row, int64_t, __m512 weight_scales, __m512) {
+    return _mm512_mul_ps(acc, weight_scales);
+  }
+};
+#endif
+
+struct Fp32Panel {
+  static constexpr int kSteps = 8;
+  static constexpr bool kWeightSums = false;
+  using Row = const float*;
+  using Accumulator = __m512;
+  static const char* name() { return "fp32"; }
+  static void steps(__m512i quad, __m512i* out) {
+    // Nibble j of a dword is column 8q + j: shifted to the top, then arithmetically back down.
+    for (int j = 0; j < 8; ++j) out[j] = _mm512_castps_si512(cvtepi32_ps(srai_epi32(slli_epi32(quad, 28 - 4 * j), 28)));
+  }
+  static Row advance(Row row, int64_t columns) { return row + columns; }
+  static Accumulator zero() { return _mm512_setzero_ps(); }
+  static __m512i broadcast(Row row, int64_t quad, int step) {
+    return _mm512_castps_si512(_mm512_set1_ps(row[quad * kQuadColumns + step]));
+  }
+  static Accumulator madd(Accumulator acc, __m512i activations, __m512i weights) {
+    return _mm512_fmadd_ps(_mm512_castsi512_ps(activations), _mm512_castsi512_ps(weights), acc);
+  }
+  static __m512 scaled(Accumulator acc, Row, int64_t, __m512 weight_scales, __m512) {
+    return _mm512_mul_ps(acc, weight_scales);
+  }
+};
+
+template <typename Kind>
+struct WeightPanel {
+  AlignedVector<int32_t> steps = AlignedVector<int32_t>(kPanelQuads * Kind::kSteps * kPanelColumns);  // [quad][step][32]
+  AlignedVector<float> scales = AlignedVector<float>(kPanelGroups * kPanelColumns);       // [group][32]
+  AlignedVector<float> weight_sums = AlignedVector<float>(kPanelGroups * kPanelColumns);  // [group][32], VnniPanel
+
+  // Columns [col_begin, col_begin + depth) of weight rows [row_begin, row_begin + 32); rows past n and
+  // columns past k read as 0.
   void pack(const uint8_t* qweight, const float* all_scales, int64_t n, int64_t k, int group_size, int64_t row_begin,
             int64_t col_begin, int64_t depth) {
-    const int64_t groups = k / group_size, block_groups = depth / group_size;
-    for (int64_t j = 0; j < kPanelColumns; ++j) {
-      const int64_t row = row_begin + j;
-      int8_t* codes = row_codes.data() + j * depth;
-      if (row < n) {
-        unpack_weight_codes(qweight + row * (k / 2) + col_begin / 2, depth, codes);
-      } else {
-        std::memset(codes, 0, depth);
-      }
-      for (int64_t g = 0; g < block_groups; ++g) {
-        scales[g * kPanelColumns + j] = row < n ? all_scales[row * groups + col_begin / group_size + g] : 0.0f;
-      }
-    }
-    // Transpose with dword gathers: lane l of half h reads 4 codes of output column 16h + l.
-    const __m512i column_offsets =
-        _mm512_mullo_epi32(_mm512_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15),
-                           _mm512_set1_epi32(static_cast<int>(depth)));
-    const __m512i half_offset = _mm512_set1_epi32(static_cast<int>(16 * depth));
+    const int64_t groups = group_count(k, group_size);
+    const int64_t quads = (depth + kQuadColumns - 1) / kQuadColumns;
+    const int64_t quads_per_group = group_size / kQuadColumns;
     const __m512i ones = _mm512_set1_epi8(1);
-    for (int64_t g = 0; g < block_groups; ++g) {
-      __m512i sums[2] = {_mm512_setzero_si512(), _mm512_setzero_si512()};
-      for (int64_t quad = g * group_size / 4; quad < (g + 1) * group_size / 4; ++quad) {
-        for (int h = 0; h < 2; ++h) {
-          const __m512i offsets = h == 0 ? column_offsets : _mm512_add_epi32(column_offsets, half_offset);
-          const __m512i four_codes = i32gather_epi32(offsets, row_codes.data() + 4 * quad);
-          if constexpr (kQuantized) {
-            _mm512_store_si512(steps.data() + quad * kPanelColumns + 16 * h, four_codes);
-            sums[h] = _mm512_dpbusd_epi32(sums[h], ones, four_codes);
-          } else {
-            for (int b = 0; b < 4; ++b) {
-              const __m512i code = srai_epi32(slli_epi32(four_codes, 24 - 8 * b), 24);
-              _mm512_store_ps(steps.data() + (4 * quad + b) * kPanelColumns + 16 * h, cvtepi32_ps(code));
+    for (int half = 0; half < 2; ++half) {
+      __m512i sums = _mm512_setzero_si512();
+      for (int64_t block = 0; block * kBlockColumns < depth; ++block) {
+        const int64_t column = col_begin + block * kBlockColumns;
+        const int64_t bytes = std::min<int64_t>(64, (k - column) / 2);
+        const __mmask64 byte_mask = bytes >= 64 ? ~__mmask64{0} : (__mmask64{1} << bytes) - 1;
+        __m512i rows[16];
+        for (int i = 0; i < 16; ++i) {
+          const int64_t row = row_begin + 16 * half + i;
+          rows[i] = row < n ? _mm512_maskz_loadu_epi8(byte_mask, qweight + row * (k / 2) + column / 2)
+                            : _mm512_setzero_si512();
+        }
+        transpose_16x16_dwords(rows);
+        for (int64_t q = 0; q < 16 && block * 16 + q < quads; ++q) {
+          const int64_t quad = block * 16 + q;
+          __m512i quad_steps[Kind::kSteps];
+          Kind::steps(rows[q], quad_steps);
+          for (int s = 0; s < Kind::kSteps; ++s) {
+            _mm512_store_si512(&steps[(quad * Kind::kSteps + s) * kPanelColumns + 16 * half], quad_steps[s]);
+            if constexpr (Kind::kWeightSums) sums = _mm512_dpbusd_epi32(sums, ones, quad_steps[s]);
+          }
+          if constexpr (Kind::kWeightSums) {
+            if ((quad + 1) % quads_per_group == 0 || quad + 1 == quads) {
+              _mm512_store_ps(&weight_sums[quad / quads_per_group * kPanelColumns + 16 * half], cvtepi32_ps(sums));
+              sums = _mm512_setzero_si512();
             }
           }
         }
       }
-      for (int h = 0; h < 2; ++h) {
-        _mm512_storeu_ps(&weight_sums[g * kPanelColumns + 16 * h], cvtepi32_ps(sums[h]));
+    }
+    const int64_t first_group = col_begin / group_size;
+    const int64_t panel_groups = group_count(depth, group_size);
+    for (int64_t j = 0; j < kPanelColumns; ++j) {
+      const int64_t row = row_begin + j;
+      for (int64_t g = 0; g < panel_groups; ++g) {
+        scales[g * kPanelColumns + j] = row < n ? all_scales[row * groups + first_group + g] : 0.0f;
       }
     }
   }
 };
 
-// Activations as the panel kernel reads them: fp32 x, or u8 codes with per-group zero points and scales.
-template <bool kQuantized>
-struct PanelActivations {
-  std::vector<std::conditional_t<kQuantized, uint8_t, float>> values;  // [m, k]
-  std::vector<float> zeros, scales;                                     // [m, k / group_size], kQuantized only
-};
-
-template <typename Element>
-PanelActivations<true> quantize_panel_activations(const Element* x, int64_t m, int64_t k, int group_size,
-                                                  int act_bits) {
-  const int64_t groups = k / group_size;
-  PanelActivations<true> a{std::vector<uint8_t>(m * k), std::vector<float>(m * groups), std::vector<float>(m * groups)};
-  parallel_for(0, m, 4, [&](int64_t row_begin, int64_t row_end) {
-    std::vector<float> row(k);
-    std::vector<ActivationGroupParams> params(groups);
-    for (int64_t r = row_begin; r < row_end; ++r) {
-      quantize_activation_row(x + r * k, k, group_size, act_bits, row.data(), a.values.data() + r * k, params.data());
-      for (int64_t g = 0; g < groups; ++g) {
-        a.zeros[r * groups + g] = static_cast<float>(params[g].zero);
-        a.scales[r * groups + g] = params[g].scale;
-      }
-    }
-  });
-  return a;
-}
-
-template <typename Element>
-PanelActivations<false> convert_panel_activations(const Element* x, int64_t m, int64_t k) {
-  PanelActivations<false> a{std::vector<float>(m * k), {}, {}};
-  parallel_for(0, m, 16, [&](int64_t row_begin, int64_t row_end) {
-    for (int64_t r = row_begin; r < row_end; ++r) load_row_fp32(x + r * k, k, a.values.data() + r * k);
-  });
-  return a;
-}
-
-template <bool kQuantized>
-struct PanelAccumulator {
-  using Type = __m512;
-};
-template <>
-struct PanelAccumulator<true> {
-  using Type = __m512i;  // exact int32 sums of one group
-};
-
-// totals[r][0..32) += the contribution of columns [col_begin, col_begin + depth) for activation rows
-// row_begin + r.
-template <bool kQuantized, int kRows>
-void panel_kernel(const WeightPanel<kQuantized>& panel, const PanelActivations<kQuantized>& activations, int64_t k,
-                  int group_size, int64_t row_begin, int64_t col_begin, int64_t depth, float* totals) {
-  using Accumulator = typename PanelAccumulator<kQuantized>::Type;
-  constexpr int64_t kStepColumns = WeightPanel<kQuantized>::kStepColumns;
-  const int64_t groups = k / group_size;
-  const auto* steps = panel.steps.data();
-  const std::conditional_t<kQuantized, uint8_t, float>* row_values[kRows];
-  for (int r = 0; r < kRows; ++r) row_values[r] = activations.values.data() + (row_begin + r) * k + col_begin;
-  for (int64_t g = 0; g < depth / group_size; ++g) {
+// totals[r][0..32) += the contribution of the panel's `depth` columns for activation rows rows[0..kRows),
+// each pointing at the panel's first column.
+template <typename Kind, int kRows>
+void panel_kernel(const WeightPanel<Kind>& panel, const typename Kind::Row* rows, int64_t depth, int group_size,
+                  float* totals) {
+  using Accumulator = typename Kind::Accumulator;
+  const int64_t quads = (depth + kQuadColumns - 1) / kQuadColumns;
+  const int64_t quads_per_group = group_size / kQuadColumns;
+  for (int64_t first = 0; first < quads; first += quads_per_group) {
     Accumulator acc[kRows][2];
-    for (int r = 0; r < kRows; ++r) {
-      for (int h = 0; h < 2; ++h) {
-        if constexpr (kQuantized) acc[r][h] = _mm512_setzero_si512(); else acc[r][h] = _mm512_setzero_ps();
-      }
-    }
-    for (int64_t col = g * group_size; col < (g + 1) * group_size; col += kStepColumns) {
-      const auto* step = steps + (col / kStepColumns) * kPanelColumns;
-      if constexpr (kQuantized) {
-        const __m512i first = _mm512_load_si512(step), second = _mm512_load_si512(step + 16);
+    for (int r = 0; r < kRows; ++r) acc[r][0] = acc[r][1] = Kind::zero();
+    const int64_t last = std::min(first + quads_per_group, quads);
+    for (int64_t quad = first; quad < last; ++quad) {
+      for (int s = 0; s < Kind::kSteps; ++s) {
+        const int32_t* step = &panel.steps[(quad * Kind::kSteps + s) * kPanelColumns];
+        const __m512i low = _mm512_load_si512(step), high = _mm512_load_si512(step + 16);
         for (int r = 0; r < kRows; ++r) {
-          int32_t four_codes;
-          std::memcpy(&four_codes, row_values[r] + col, 4);
-          const __m512i broadcast = _mm512_set1_epi32(four_codes);
-          acc[r][0] = _mm512_dpbusd_epi32(acc[r][0], broadcast, first);
-          acc[r][1] = _mm512_dpbusd_epi32(acc[r][1], broadcast, second);
-        }
-      } else {
-        const __m512 first = _mm512_load_ps(step), second = _mm512_load_ps(step + 16);
-        for (int r = 0; r < kRows; ++r) {
-          const __m512 broadcast = _mm512_set1_ps(row_values[r][col]);
-          acc[r][0] = _mm512_fmadd_ps(broadcast, first, acc[r][0]);
-          acc[r][1] = _mm512_fmadd_ps(broadcast, second, acc[r][1]);
+          const __m512i activations = Kind::broadcast(rows[r], quad, s);
+          acc[r][0] = Kind::madd(acc[r][0], activations, low);
+          acc[r][1] = Kind::madd(acc[r][1], activations, high);
         }
       }
     }
     // The totals stay in memory: keeping them in registers too would make the compiler spill the inner loop.
-    const int64_t group = col_begin / group_size + g;
+    const int64_t group = first / quads_per_group;
     for (int h = 0; h < 2; ++h) {
-      const __m512 weight_scales = _mm512_loadu_ps(&panel.scales[g * kPanelColumns + 16 * h]);
-      if constexpr (kQuantized) {
-        const __m512 weight_sums = _mm512_loadu_ps(&panel.weight_sums[g * kPanelColumns + 16 * h]);
-        for (int r = 0; r < kRows; ++r) {
-          const int64_t at = (row_begin + r) * groups + group;
-          // P = sum q_x q_w - z_x sum q_w, exact in fp32 (integers below 2^24).
-          const __m512 partial =
-              _mm512_fnmadd_ps(weight_sums, _mm512_set1_ps(activations.zeros[at]), cvtepi32_ps(acc[r][h]));
-          float* total = totals + r * kPanelColumns + 16 * h;
-          const __m512 scale = _mm512_mul_ps(weight_scales, _mm512_set1_ps(activations.scales[at]));
-          _mm512_storeu_ps(total, _mm512_fmadd_ps(partial, scale, _mm512_loadu_ps(total)));
-        }
-      } else {
-        for (int r = 0; r < kRows; ++r) {
-          float* total = totals + r * kPanelColumns + 16 * h;
-          _mm512_storeu_ps(total, _mm512_fmadd_ps(acc[r][h], weight_scales, _mm512_loadu_ps(total)));
-        }
+      const __m512 weight_scales = _mm512_load_ps(&panel.scales[group * kPanelColumns + 16 * h]);
+      const __m512 weight_sums = _mm512_load_ps(&panel.weight_sums[group * kPanelColumns + 16 * h]);
+      for (int r = 0; r < kRows; ++r) {
+        float* total = totals + r * kPanelColumns + 16 * h;
+        _mm512_storeu_ps(total, _mm512_add_ps(_mm512_loadu_ps(total),
+                                              Kind::scaled(acc[r][h], rows[r], first, weight_scales, weight_sums)));
       }
     }
   }
 }
 
-template <bool kQuantized, typename Element>
-void run_panels(const PanelActivations<kQuantized>& activations, const uint8_t* qweight, const float* scales,
-                const Element* bias, int64_t m, int64_t n, int64_t k, int group_size, Element* out) {
+// Threads split the panels; each packs a panel's depth slice once and runs it against every activation row.
+template <typename Kind, typename Element, typename ActivationRow>
+void run_panels(ActivationRow&& activation_row, const uint8_t* qweight, const float* scales, const Element* bias,
+                int64_t m, int64_t n, int64_t k, int group_size, Element* out) {
   const int64_t panels = (n + kPanelColumns - 1) / kPanelColumns;
   parallel_for(0, panels, 1, [&](int64_t panel_begin, int64_t panel_end) {
-    WeightPanel<kQuantized> panel;
-    std::vector<float> totals(m * kPanelColumns);  // [m][32]
+    WeightPanel<Kind> panel;
+    AlignedVector<float> totals(m * kPanelColumns);  // [m][32]
+    std::vector<typename Kind::Row> rows(m);
     for (int64_t p = panel_begin; p < panel_end; ++p) {
       const int64_t weight_row = p * kPanelColumns;
       std::fill(totals.begin(), totals.end(), 0.0f);
       for (int64_t col = 0; col < k; col += kPanelDepth) {
         const int64_t depth = std::min(kPanelDepth, k - col);
         panel.pack(qweight, scales, n, k, group_size, weight_row, col, depth);
+        for (int64_t r = 0; r < m; ++r) rows[r] = Kind::advance(activation_row(r), col);
         for (int64_t row = 0; row < m; row += kPanelTileRows) {
-          const int rows = static_cast<int>(std::min<int64_t>(kPanelTileRows, m - row));
-          dispatch_tile_rows<kPanelTileRows>(rows, [&](auto tile_rows) {
-            panel_kernel<kQuantized, decltype(tile_rows)::value>(panel, activations, k, group_size, row, col, depth,
-                                                                 totals.data() + row * kPanelColumns);
+          const int tile = static_cast<int>(std::min<int64_t>(kPanelTileRows, m - row));
+          dispatch_tile_rows<kPanelTileRows>(tile, [&](auto tile_rows) {
+            panel_kernel<Kind, decltype(tile_rows)::value>(panel, rows.data() + row, depth, group_size,
+                                                           totals.data() + row * kPanelColumns);
           });
         }
       }
@@ -445,50 +540,58 @@ void run_panels(const PanelActivations<kQuantized>& activations, const uint8_t* 
   });
 }
 
-template <int kBits, typename Element>
-void gemm_typed(const Element* x, const uint8_t* qweight, const float* scales, const Element* bias, int64_t m, int64_t n,
-                int64_t k, int group_size, Element* out);
+// From this many activation rows on, the panel path (below it the row kernels, which need no packing).
+constexpr int64_t kPanelMinRows = 8;
 
-// The panel path for a k that group_size does not divide: x and the weights copied with zero columns up
-// to whole groups (the scales already have one entry per group, the last one for the remainder).
-template <int kBits, typename Element>
-void gemm_panels_padded(const Element* x, const uint8_t* qweight, const float* scales, const Element* bias, int64_t m,
-                        int64_t n, int64_t k, int group_size, Element* out) {
-  const int64_t padded = group_count(k, group_size) * group_size;
-  std::vector<Element> x_padded(m * padded, Element(0.0f));
-  std::vector<uint8_t> qweight_padded(n * padded / 2, 0);
-  parallel_for(0, std::max(m, n), 16, [&](int64_t begin, int64_t end) {
-    for (int64_t r = begin; r < end; ++r) {
-      if (r < m) std::memcpy(x_padded.data() + r * padded, x + r * k, k * sizeof(Element));
-      if (r < n) std::memcpy(qweight_padded.data() + r * padded / 2, qweight + r * k / 2, k / 2);
-    }
-  });
-  gemm_typed<kBits>(x_padded.data(), qweight_padded.data(), scales, bias, m, n, padded, group_size, out);
-}
+#if defined(DYQ_AVX512_HAS_BF16)
+using FallbackPanel = Bf16Panel;
+#else
+using FallbackPanel = Fp32Panel;
+#endif
 
 template <int kBits, typename Element>
 void gemm_typed(const Element* x, const uint8_t* qweight, const float* scales, const Element* bias, int64_t m, int64_t n,
                 int64_t k, int group_size, Element* out) {
-  constexpr bool kQuantized = ActivationTraits<kBits>::kQuantized;
-  if (m >= kPanelMinRows && k % group_size != 0) {
-    gemm_panels_padded<kBits>(x, qweight, scales, bias, m, n, k, group_size, out);
-  } else if (m >= kPanelMinRows) {
-    if constexpr (kQuantized) {
-      run_panels(quantize_panel_activations(x, m, k, group_size, kBits), qweight, scales, bias, m, n, k, group_size,
-                 out);
-    } else {
-      run_panels(convert_panel_activations(x, m, k), qweight, scales, bias, m, n, k, group_size, out);
-    }
-  } else if constexpr (kQuantized) {
+  if constexpr (ActivationTraits<kBits>::kQuantized) {
     const int64_t blocks = (k + kBlockColumns - 1) / kBlockColumns;
     const std::vector<QuantizedBlock> activations = quantize_activation_blocks(x, m, k, group_size, kBits);
+    auto row = [&](int64_t r) { return activations.data() + r * blocks; };
+    if (m >= kPanelMinRows) {
+      run_panels<VnniPanel>(row, qweight, scales, bias, m, n, k, group_size, out);
+      return;
+    }
     run_tiles<kMaxTileRows>(
-        qweight, scales, bias, m, n, k, group_size, out, [&](int64_t r) { return activations.data() + r * blocks; },
+        qweight, scales, bias, m, n, k, group_size, out, row,
         [&](auto tile_rows, const uint8_t* weight_row, const float* scales_row, const QuantizedBlock* const* rows,
             float* sums) {
           quantized_row_kernel<decltype(tile_rows)::value>(weight_row, scales_row, k, group_size, rows, sums);
         });
   } else {
+#if defined(DYQ_AVX512_HAS_BF16)
+    const AlignedVector<uint16_t> activations = bf16_activations(x, m, k);
+    const int64_t pitch = block_padded(k);
+    auto row = [&](int64_t r) { return activations.data() + r * pitch; };
+    if (m >= kPanelMinRows) {
+      run_panels<Bf16Panel>(row, qweight, scales, bias, m, n, k, group_size, out);
+      return;
+    }
+    run_tiles<kMaxTileRows>(
+        qweight, scales, bias, m, n, k, group_size, out, row,
+        [&](auto tile_rows, const uint8_t* weight_row, const float* scales_row, const uint16_t* const* rows,
+            float* sums) {
+          bf16_row_kernel<decltype(tile_rows)::value>(weight_row, scales_row, k, group_size, rows, sums);
+        });
+#else
+    if (m >= kPanelMinRows) {
+      const int64_t pitch = block_padded(k);  // zeros past k, which the last quads read
+      std::vector<float> activations(m * pitch, 0.0f);
+      parallel_for(0, m, 16, [&](int64_t row_begin, int64_t row_end) {
+        for (int64_t r = row_begin; r < row_end; ++r) load_row_fp32(x + r * k, k, activations.data() + r * pitch);
+      });
+      run_panels<Fp32Panel>([&](int64_t r) { return activations.data() + r * pitch; }, qweight, scales, bias, m, n,
+                            k, group_size, out);
+      return;
+    }
     const std::vector<float> activations = deinterleave_activations(x, m, k);
     const int64_t pitch = chunk_padded(k);
     run_tiles<kMaxTileRows>(
@@ -496,13 +599,19 @@ void gemm_typed(const Element* x, const uint8_t* qweight, const float* scales, c
         [&](auto tile_rows, const uint8_t* weight_row, const float* scales_row, const float* const* rows, float* sums) {
           fp32_row_kernel<decltype(tile_rows)::value>(weight_row, scales_row, k, group_size, rows, sums);
         });
+#endif
   }
 }
 
 inline const char* gemm_kernel(int64_t m, int64_t, int, int act_bits) {
-  if (act_bits == kFallbackBits) return m >= kPanelMinRows ? "avx512/panel-fp32" : "avx512/rows-fp32";
-  return m >= kPanelMinRows ? "avx512/panel-vnni" : "avx512/rows-vnni";
+  const bool panel = m >= kPanelMinRows;
+  if (act_bits != kFallbackBits) return panel ? DYQ_ISA_NAME "/panel-vnni" : DYQ_ISA_NAME "/rows-vnni";
+#if defined(DYQ_AVX512_HAS_BF16)
+  return panel ? DYQ_ISA_NAME "/panel-bf16" : DYQ_ISA_NAME "/rows-bf16";
+#else
+  return panel ? DYQ_ISA_NAME "/panel-fp32" : DYQ_ISA_NAME "/rows-fp32";
+#endif
 }
 
-}  // namespace dyq::cpu::avx512
+}  // namespace dyq::cpu::DYQ_ISA_NAMESPACE
 DYQ_ISA_END
