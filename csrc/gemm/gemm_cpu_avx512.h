@@ -31,6 +31,9 @@
 #include "cpu/isa_region.h"
 #include "cpu/x86_ops.h"
 #include "parallel/parallel.h"
+#if defined(DYQ_AVX512_HAS_AMX)
+#include "gemm/gemm_cpu_amx.h"
+#endif
 
 DYQ_ISA_BEGIN
 namespace dyq::cpu::DYQ_ISA_NAMESPACE {
@@ -543,16 +546,21 @@ void run_panels(ActivationRow&& activation_row, const uint8_t* qweight, const fl
 // From this many activation rows on, the panel path (below it the row kernels, which need no packing).
 constexpr int64_t kPanelMinRows = 8;
 
-#if defined(DYQ_AVX512_HAS_BF16)
-using FallbackPanel = Bf16Panel;
-#else
-using FallbackPanel = Fp32Panel;
+#if defined(DYQ_AVX512_HAS_AMX)
+// From this many activation rows on, the AMX tiles (two A tiles of 16 rows; not measured: no AMX CPU at hand).
+constexpr int64_t kAmxMinRows = 16;
 #endif
 
 template <int kBits, typename Element>
 void gemm_typed(const Element* x, const uint8_t* qweight, const float* scales, const Element* bias, int64_t m, int64_t n,
                 int64_t k, int group_size, Element* out) {
   if constexpr (ActivationTraits<kBits>::kQuantized) {
+#if defined(DYQ_AVX512_HAS_AMX)
+    if (m >= kAmxMinRows) {
+      amx_gemm<NativeTiles>(x, qweight, scales, bias, m, n, k, group_size, kBits, out);
+      return;
+    }
+#endif
     const int64_t blocks = (k + kBlockColumns - 1) / kBlockColumns;
     const std::vector<QuantizedBlock> activations = quantize_activation_blocks(x, m, k, group_size, kBits);
     auto row = [&](int64_t r) { return activations.data() + r * blocks; };
@@ -605,6 +613,9 @@ void gemm_typed(const Element* x, const uint8_t* qweight, const float* scales, c
 
 inline const char* gemm_kernel(int64_t m, int64_t, int, int act_bits) {
   const bool panel = m >= kPanelMinRows;
+#if defined(DYQ_AVX512_HAS_AMX)
+  if (act_bits != kFallbackBits && m >= kAmxMinRows) return DYQ_ISA_NAME "/tiles-amx-int8";
+#endif
   if (act_bits != kFallbackBits) return panel ? DYQ_ISA_NAME "/panel-vnni" : DYQ_ISA_NAME "/rows-vnni";
 #if defined(DYQ_AVX512_HAS_BF16)
   return panel ? DYQ_ISA_NAME "/panel-bf16" : DYQ_ISA_NAME "/rows-bf16";

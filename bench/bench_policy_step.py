@@ -1,0 +1,148 @@
+"""One OpenVLA-style control step on the CPU: a prefill of the prompt, then 7 greedily decoded action
+tokens, each one forward with the KV cache, for torch fp32 and bf16 against dyq at every width.
+
+Two Llama configs with random weights (transformers' LlamaConfig, nothing downloaded): the closed-loop
+policy's (python/dyq/sim/policies/*/policy.json) and one of about 0.5 B parameters. dyq runs
+``dyq.quantize_model`` on the bf16 model (its LM head and everything outside the linear layers stay bf16,
+as in the bf16 baseline) and then sets the width with ``dyq.set_precision``. Beside the median step time,
+a second, instrumented pass records the share of the step spent inside dyq's GEMMs (forward hooks on every
+DyQLinear); the rest is attention, norms, the LM head and framework overhead.
+
+    python bench/bench_policy_step.py                  # both configs
+    python bench/bench_policy_step.py --config policy --prompt 256
+"""
+from __future__ import annotations
+
+import argparse
+import copy
+import json
+import time
+from pathlib import Path
+
+import torch
+
+import dyq
+from dyq.results import environment, median_ms, print_table, write_json
+
+ACTION_TOKENS = 7
+BITS = [16, 8, 4, 2]
+
+
+def policy_config() -> dict:
+    path = sorted((Path(dyq.__file__).parent / "sim" / "policies").glob("*/policy.json"))[0]
+    config = json.loads(path.read_text())
+    return {"hidden_size": config["hidden_size"], "intermediate_size": config["intermediate_size"],
+            "num_hidden_layers": config["layers"], "num_attention_heads": config["heads"], "vocab_size": 512,
+            "source": str(path.relative_to(Path(dyq.__file__).parent))}
+
+
+CONFIGS = {
+    "policy": policy_config,
+    # About 0.5 B parameters: 20 layers of hidden 1280, MLP 3456, a 32000-token vocabulary.
+    "0.5b": lambda: {"hidden_size": 1280, "intermediate_size": 3456, "num_hidden_layers": 20,
+                     "num_attention_heads": 20, "vocab_size": 32000},
+}
+DEFAULT_PROMPT = {"policy": 256, "0.5b": 64}
+
+
+def build_model(settings: dict, prompt: int):
+    from transformers import LlamaConfig, LlamaForCausalLM
+
+    fields = {key: value for key, value in settings.items() if key != "source"}
+    config = LlamaConfig(**fields, num_key_value_heads=fields["num_attention_heads"],
+                         max_position_embeddings=prompt + ACTION_TOKENS + 8, tie_word_embeddings=False)
+    torch.manual_seed(0)
+    return LlamaForCausalLM(config).eval()
+
+
+def control_step(model, prompt_ids: torch.Tensor) -> torch.Tensor:
+    out = model(input_ids=prompt_ids, use_cache=True)
+    past, token = out.past_key_values, out.logits[:, -1:].argmax(-1)
+    tokens = []
+    for _ in range(ACTION_TOKENS):
+        out = model(input_ids=token, past_key_values=past, use_cache=True)
+        past, token = out.past_key_values, out.logits[:, -1:].argmax(-1)
+        tokens.append(token)
+    return torch.cat(tokens, dim=1)
+
+
+def gemm_share(model, step) -> float:
+    """Share of one step's wall time spent inside DyQLinear forwards (hooks around each)."""
+    spent, starts = [0.0], {}
+
+    def before(module, _):
+        starts[id(module)] = time.perf_counter()
+
+    def after(module, _, __):
+        spent[0] += time.perf_counter() - starts.pop(id(module))
+
+    handles = []
+    for module in model.modules():
+        if isinstance(module, dyq.DyQLinear):
+            handles += [module.register_forward_pre_hook(before), module.register_forward_hook(after)]
+    try:
+        start = time.perf_counter()
+        step()
+        total = time.perf_counter() - start
+    finally:
+        for handle in handles:
+            handle.remove()
+    return spent[0] / total
+
+
+def time_config(name: str, prompt: int, repeats: int) -> dict:
+    settings = CONFIGS[name]()
+    fp32 = build_model(settings, prompt)
+    parameters = sum(p.numel() for p in fp32.parameters())
+    bf16 = copy.deepcopy(fp32).to(torch.bfloat16)
+    quantized = copy.deepcopy(bf16)
+    dyq.quantize_model(quantized)
+    prompt_ids = torch.randint(3, settings["vocab_size"], (1, prompt))
+    timings, prefill, shares, kernels = {}, {}, {}, {}
+    with torch.inference_mode():
+        for label, model in [("fp32", fp32), ("bf16", bf16)]:
+            timings[label] = median_ms(lambda: control_step(model, prompt_ids), warmup=1, repeats=repeats)
+            prefill[label] = median_ms(lambda: model(input_ids=prompt_ids, use_cache=True), warmup=1, repeats=repeats)
+        for bits in BITS:
+            label = f"w4a{bits}"
+            dyq.set_precision(quantized, bits)
+            timings[label] = median_ms(lambda: control_step(quantized, prompt_ids), warmup=1, repeats=repeats)
+            prefill[label] = median_ms(lambda: quantized(input_ids=prompt_ids, use_cache=True), warmup=1,
+                                       repeats=repeats)
+            shares[label] = gemm_share(quantized, lambda: control_step(quantized, prompt_ids))
+            kernels[label] = {"prefill": dyq.cpu_gemm_kernel(prompt, settings["hidden_size"], 128, bits),
+                              "decode": dyq.cpu_gemm_kernel(1, settings["hidden_size"], 128, bits)}
+    return {"config": name, "settings": settings, "parameters": parameters, "prompt_tokens": prompt,
+            "decoded_tokens": ACTION_TOKENS, "step_ms": timings, "prefill_ms": prefill, "dyq_gemm_share": shares,
+            "dyq_kernel": kernels}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--config", choices=sorted(CONFIGS), action="append", help="configs to run (repeatable)")
+    parser.add_argument("--prompt", type=int, help="prompt tokens (default: 256 for policy, 64 for 0.5b)")
+    parser.add_argument("--threads", type=int, default=torch.get_num_threads())
+    parser.add_argument("--repeats", type=int, default=5)
+    parser.add_argument("--out", default="policy_step_cpu.json")
+    args = parser.parse_args()
+    torch.set_num_threads(args.threads)
+    results = [time_config(name, args.prompt or DEFAULT_PROMPT[name], args.repeats)
+               for name in args.config or ["policy", "0.5b"]]
+    labels = ["fp32", "bf16"] + [f"w4a{b}" for b in BITS]
+    rows = []
+    for r in results:
+        for label in labels:
+            step, pre = r["step_ms"][label], r["prefill_ms"][label]
+            share = r["dyq_gemm_share"].get(label)
+            rows.append([f"{r['config']} ({r['parameters'] / 1e6:.0f} M)", r["prompt_tokens"], label, f"{step:.1f}",
+                         f"{pre:.1f}", f"{step - pre:.1f}", f"{r['step_ms']['bf16'] / step:.2f}x",
+                         "" if share is None else f"{100 * share:.0f} %"])
+    print_table(["config", "prompt", "model", "step ms", "prefill ms", "decode ms", "bf16 / this", "in dyq GEMMs"],
+                rows, title=f"One control step (prefill + {ACTION_TOKENS} decoded tokens), {args.threads} thread(s)")
+    path = write_json(args.out, {"benchmark": "policy_step_cpu", "environment": environment(),
+                                 "threads": args.threads, "results": results})
+    print(f"\nwrote {path}")
+
+
+if __name__ == "__main__":
+    main()
