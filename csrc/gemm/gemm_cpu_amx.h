@@ -92,21 +92,25 @@ struct NativeTiles {
     for (int t = 6; t < 8; ++t) config.colsb[t] = 64, config.rows[t] = static_cast<uint8_t>(step / 4);
     _tile_loadconfig(&config);
   }
+  // The intrinsics' macros paste their tile argument into the register name, so it must be a literal;
+  // the asm below prints the template argument as one (%c) instead. Both dialects, as the macros have.
   template <int kTile>
   void zero() {
-    _tile_zero(kTile);
+    asm volatile("{tilezero %%tmm%c0|tilezero tmm%c0}" ::"i"(kTile));
   }
   template <int kTile>
   void load(const void* base, int64_t stride) {
-    _tile_loadd(kTile, base, stride);
+    asm volatile("{tileloadd (%0,%1,1), %%tmm%c2|tileloadd tmm%c2, [%0+%1*1]}" ::"r"(base), "r"(stride), "i"(kTile)
+                 : "memory");
   }
   template <int kTile>
   void store(void* base, int64_t stride) {
-    _tile_stored(kTile, base, stride);
+    asm volatile("{tilestored %%tmm%c2, (%0,%1,1)|tilestored [%0+%1*1], tmm%c2}" ::"r"(base), "r"(stride), "i"(kTile)
+                 : "memory");
   }
   template <int kC, int kA, int kB>
   void dpbusd() {
-    _tile_dpbusd(kC, kA, kB);
+    asm volatile("{tdpbusd %%tmm%c2, %%tmm%c1, %%tmm%c0|tdpbusd tmm%c0, tmm%c1, tmm%c2}" ::"i"(kC), "i"(kA), "i"(kB));
   }
   void release() { _tile_release(); }
 };
