@@ -125,3 +125,20 @@ def test_collect_round_trip(tmp_path):
     # The labels replay: the expert, rerun on the stored seed, gives the same clean actions.
     again = demos.run_episode(envs.make_env("lift"), experts.make_expert("lift"), "lift", loaded[0]["seed"], 0.2)
     np.testing.assert_array_equal(again["actions"], loaded[0]["actions"])
+
+
+def test_collect_resumes_an_interrupted_file(tmp_path):
+    whole, split = tmp_path / "whole.hdf5", tmp_path / "split.hdf5"
+    demos.collect("lift", 3, whole, noise=0.2, progress=False)
+    demos.collect("lift", 1, split, noise=0.2, progress=False)
+    resumed = demos.collect("lift", 3, split, noise=0.2, progress=False, resume=True)
+    assert resumed["kept"] == 3
+    a, b = demos.load(whole), demos.load(split)
+    assert [d["seed"] for d in a] == [d["seed"] for d in b]
+    for x, y in zip(a, b):
+        np.testing.assert_array_equal(x["actions"], y["actions"])
+    with h5py.File(split, "r") as f:
+        assert f["data"].attrs["total"] == sum(d["num_samples"] for d in b)
+        assert json.loads(f["data"].attrs["per_task_success"])["0"][1] == f["data"].attrs["attempts"]
+    with pytest.raises(ValueError, match="collected with"):
+        demos.collect("lift", 4, split, noise=0.3, progress=False, resume=True)

@@ -29,14 +29,17 @@ from . import envs, experts
 # Execution noise (std, in action units) per task, chosen so the noisy expert still meets its success target
 # within the horizon (seeds 0..49): lift and can 50/50 at 0.2; the square nut 50/50 at 0.1 but 28/30 at 0.2
 # with long detours, since its 6 mm grasp tolerance is slow to meet under more noise.
-DEFAULT_NOISE = {"lift": 0.2, "pick_place_can": 0.2, "square": 0.1}
+DEFAULT_NOISE = {"lift": 0.2, "pick_place_can": 0.2, "square": 0.1, "libero_object": 0.1, "libero_spatial": 0.1}
 
 ROBOT_OBS_KEYS = ["robot0_eef_pos", "robot0_eef_quat", "robot0_gripper_qpos", "robot0_joint_pos",
                   "robot0_joint_vel"]
 
 
 def obs_keys(task: str) -> list[str]:
-    """The raw observations stored per demo: the robot's state and the task object's pose."""
+    """The raw observations stored per demo: the robot's state and the task object's pose (for the LIBERO
+    suites, the target's position and the expert's grasp and place points)."""
+    if envs.libero.is_suite(task):
+        return ROBOT_OBS_KEYS + ["dyq_object", "dyq_grasp", "dyq_place"]
     key = envs.spec(task).object_key
     return ROBOT_OBS_KEYS + [f"{key}_pos", f"{key}_quat"]
 
@@ -69,6 +72,7 @@ def run_episode(env, expert, task: str, seed: int, noise: float) -> dict:
     out = {
         "seed": seed,
         "success": success,
+        "task_index": envs.libero.task_of_seed(seed)[0] if envs.libero.is_suite(task) else 0,
         "actions": np.asarray(rec["actions"], dtype=np.float32),
         "executed_actions": np.asarray(rec["executed_actions"], dtype=np.float32),
         "policy_vector": np.asarray(rec["policy_vector"], dtype=np.float32),
@@ -85,6 +89,7 @@ def _write_demo(group, demo: dict) -> None:
     group.attrs["num_samples"] = demo["num_samples"]
     group.attrs["seed"] = demo["seed"]
     group.attrs["success"] = demo["success"]
+    group.attrs["task_index"] = demo["task_index"]
     for k in ("actions", "executed_actions", "rewards", "dones", "states"):
         group.create_dataset(k, data=demo[k], compression="gzip")
     obs = group.create_group("obs")
@@ -94,10 +99,15 @@ def _write_demo(group, demo: dict) -> None:
 
 
 def collect(task: str, n_demos: int, out_path, seed0: int = envs.DEMO_SEED0, noise: float | None = None,
-            keep_failures: bool = False, max_attempts: int | None = None, progress: bool = True) -> dict:
+            keep_failures: bool = False, max_attempts: int | None = None, progress: bool = True,
+            resume: bool = False) -> dict:
     """Run the expert on seeds ``seed0, seed0 + 1, ...`` until ``n_demos`` episodes are kept (successful
     ones only, unless ``keep_failures``), writing them to ``out_path``. Gives up after ``max_attempts``
-    (default 3 * n_demos + 10). Returns a summary: attempts, kept, successes, steps of the kept demos."""
+    (default 3 * n_demos + 10). Returns a summary: attempts, kept, successes, steps of the kept demos, and
+    per task index the successes and attempts (the LIBERO suites' ten tasks).
+
+    The file is flushed after every demo with its running totals, so an interrupted collection keeps what
+    it wrote; ``resume`` continues such a file (same task, noise and first seed) where it stopped."""
     import h5py
     from tqdm import tqdm
 
@@ -105,30 +115,51 @@ def collect(task: str, n_demos: int, out_path, seed0: int = envs.DEMO_SEED0, noi
     max_attempts = 3 * n_demos + 10 if max_attempts is None else max_attempts
     out_path = Path(out_path)
     out_path.parent.mkdir(parents=True, exist_ok=True)
-    env = envs.make_env(task)
-    expert = experts.make_expert(task)
-    attempts = successes = total = 0
-    steps = []
-    with h5py.File(out_path, "w") as f:
-        data = f.create_group("data")
-        data.attrs["env_args"] = json.dumps(envs.env_args(task))
-        data.attrs.update(task=task, noise=noise, seed0=seed0)
-        bar = tqdm(total=n_demos, desc=f"collect {task}", disable=not progress)
+    if resume and not out_path.is_file():
+        resume = False  # nothing to resume: start the file
+    with h5py.File(out_path, "a" if resume else "w") as f:
+        if resume:
+            data = f["data"]
+            stored = {k: data.attrs.get(k) for k in ("task", "noise", "seed0")}
+            if (str(stored["task"]), float(stored["noise"]), int(stored["seed0"])) != (task, noise, seed0):
+                raise ValueError(f"{out_path} was collected with {stored}, not task={task!r}, noise={noise}, "
+                                 f"seed0={seed0}: collect into another file")
+            attempts, successes = int(data.attrs["attempts"]), int(data.attrs["successes"])
+            per_task = {int(k): v for k, v in json.loads(data.attrs["per_task_success"]).items()}
+            steps = [int(data[f"demo_{i}"].attrs["num_samples"]) for i in range(int(data.attrs["kept"]))]
+            for name in [k for k in data if int(k.split("_")[1]) >= len(steps)]:
+                del data[name]  # written after the last flushed totals
+        else:
+            data = f.create_group("data")
+            data.attrs["env_args"] = json.dumps(envs.env_args(task))
+            data.attrs.update(task=task, noise=noise, seed0=seed0)
+            if envs.libero.is_suite(task):
+                data.attrs["task_names"] = json.dumps(envs.libero.task_names(task))
+            attempts = successes = 0
+            steps = []
+            per_task = {}  # task index: [successes, attempts]
+        env = envs.make_env(task)
+        expert = experts.make_expert(task)
+        bar = tqdm(total=n_demos, initial=len(steps), desc=f"collect {task}", disable=not progress)
         while len(steps) < n_demos and attempts < max_attempts:
             demo = run_episode(env, expert, task, seed0 + attempts, noise)
             attempts += 1
             successes += demo["success"]
+            tally = per_task.setdefault(int(demo["task_index"]), [0, 0])
+            tally[0] += int(demo["success"])
+            tally[1] += 1
             if demo["success"] or keep_failures:
                 _write_demo(data.create_group(f"demo_{len(steps)}"), demo)
                 steps.append(demo["num_samples"])
-                total += demo["num_samples"]
                 bar.update(1)
+            data.attrs.update(total=sum(steps), attempts=attempts, successes=successes, kept=len(steps),
+                              per_task_success=json.dumps({str(k): v for k, v in sorted(per_task.items())}))
+            f.flush()
             bar.set_postfix(attempts=attempts, success=f"{successes / attempts:.0%}")
         bar.close()
-        data.attrs.update(total=total, attempts=attempts, kept=len(steps))
     env.close()
     return {"task": task, "path": str(out_path), "noise": noise, "attempts": attempts, "successes": successes,
-            "kept": len(steps), "steps": steps}
+            "kept": len(steps), "steps": steps, "per_task": dict(sorted(per_task.items()))}
 
 
 def load(path) -> list[dict]:
@@ -152,7 +183,7 @@ def load(path) -> list[dict]:
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Arguments of ``dyq collect``."""
-    parser.add_argument("task", choices=sorted(envs.TASKS))
+    parser.add_argument("task", choices=envs.ALL_TASKS)
     parser.add_argument("--demos", type=int, default=200, help="successful demos to keep")
     parser.add_argument("--out", type=Path, default=None, help="HDF5 path (default: demos/<task>.hdf5)")
     parser.add_argument("--noise", type=float, default=None,
@@ -160,6 +191,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--seed0", type=int, default=envs.DEMO_SEED0,
                         help="first seed; keep demo seeds out of the evaluation range 0..999")
     parser.add_argument("--keep-failures", action="store_true", help="store failed episodes too")
+    parser.add_argument("--resume", action="store_true",
+                        help="continue an interrupted collection in --out (same task, noise and seed0)")
 
 
 def main(args: argparse.Namespace) -> int:
@@ -167,12 +200,14 @@ def main(args: argparse.Namespace) -> int:
     asked for were kept."""
     out = args.out or Path("demos") / f"{args.task}.hdf5"
     summary = collect(args.task, args.demos, out, seed0=args.seed0, noise=args.noise,
-                      keep_failures=args.keep_failures)
+                      keep_failures=args.keep_failures, resume=args.resume)
     steps = np.asarray(summary["steps"])
     print(f"{summary['task']}: {summary['successes']}/{summary['attempts']} attempts succeeded "
           f"({summary['successes'] / max(summary['attempts'], 1):.1%}) at noise {summary['noise']}; "
           f"kept {summary['kept']} demos in {summary['path']}"
           + (f", steps median {np.median(steps):.0f}, p95 {np.percentile(steps, 95):.0f}" if len(steps) else ""))
+    if len(summary["per_task"]) > 1:
+        print("per task (successes/attempts): " + ", ".join(f"{k}: {s}/{a}" for k, (s, a) in summary["per_task"].items()))
     return 0 if summary["kept"] >= args.demos else 1
 
 

@@ -11,12 +11,17 @@ observation ``env.step`` returns can lag the simulator state by physics substeps
 :func:`step_env` re-reads it from the state reached.
 
 Seed ranges: evaluation uses seeds 0..999, demonstrations start at :data:`DEMO_SEED0` (disjoint).
+
+The LIBERO suites (``libero_object``, ``libero_spatial``; :mod:`dyq.sim.libero`, in the environment of the
+``libero`` extra) are tasks too: every function here takes them, and routes them there.
 """
 from __future__ import annotations
 
 from dataclasses import dataclass
 
 import numpy as np
+
+from . import libero
 
 DEMO_SEED0 = 100_000
 EVAL_SEEDS = range(1000)
@@ -63,9 +68,16 @@ ENV_KWARGS = dict(
 )
 
 
+# The LIBERO suites' horizons are LIBERO's own evaluation lengths; their objects and goals vary per task.
+LIBERO_TASKS: dict[str, TaskSpec] = {name: TaskSpec(name, s.horizon, "", 0.0) for name, s in libero.SUITES.items()}
+ALL_TASKS = sorted(TASKS) + sorted(LIBERO_TASKS)
+
+
 def spec(task: str) -> TaskSpec:
+    if task in LIBERO_TASKS:
+        return LIBERO_TASKS[task]
     if task not in TASKS:
-        raise ValueError(f"unknown task {task!r}; choose from {sorted(TASKS)}")
+        raise ValueError(f"unknown task {task!r}; choose from {ALL_TASKS}")
     return TASKS[task]
 
 
@@ -78,6 +90,13 @@ def controller_config() -> dict:
 def make_env(task: str, seed: int | None = None, horizon: int | None = None, render: bool = False):
     """A fresh environment for ``task``, reset with ``seed`` when one is given (see :func:`reset_env`);
     ``render`` adds MuJoCo's offscreen renderer for videos (``env.sim.render``)."""
+    if libero.is_suite(task):
+        if render:
+            raise NotImplementedError("videos of the LIBERO suites are not supported (state-only environments)")
+        env = libero.SuiteEnv(task)
+        if seed is not None:
+            env.reset(seed)
+        return env
     import robosuite
 
     kwargs = dict(ENV_KWARGS, has_offscreen_renderer=render)
@@ -90,6 +109,10 @@ def make_env(task: str, seed: int | None = None, horizon: int | None = None, ren
 
 def env_args(task: str) -> dict:
     """What recreates the environment (stored with demonstrations, in robomimic's ``env_args`` shape)."""
+    if libero.is_suite(task):
+        return {"env_name": task, "type": "libero", "task": task,
+                "env_kwargs": {"horizon": spec(task).horizon, "control_freq": 20,
+                               "settle_steps": libero.SETTLE_STEPS}}
     kwargs = {k: v for k, v in ENV_KWARGS.items()}
     kwargs.update(controller_configs=controller_config(), horizon=spec(task).horizon)
     return {"env_name": spec(task).env_name, "type": 1, "task": task, "env_kwargs": kwargs}
@@ -105,6 +128,8 @@ def _set_sampler_rng(sampler, rng) -> None:
 
 def reset_env(env, seed: int) -> dict:
     """Reset ``env`` to the initial state that ``seed`` determines and return the first observation."""
+    if isinstance(env, libero.SuiteEnv):
+        return env.reset(seed)
     rng = np.random.default_rng(seed)
     env.rng = rng
     _set_sampler_rng(getattr(env, "placement_initializer", None), rng)
@@ -113,12 +138,16 @@ def reset_env(env, seed: int) -> dict:
 
 def step_env(env, action: np.ndarray) -> tuple[dict, float, bool, dict]:
     """``env.step`` with the observation read from the state reached (see the module docstring)."""
+    if isinstance(env, libero.SuiteEnv):
+        return env.step(action)
     _, reward, done, info = env.step(action)
     return env._get_observations(force_update=True), reward, done, info
 
 
 def check_success(env) -> bool:
     """The task's own success test, independent of the reward settings."""
+    if isinstance(env, libero.SuiteEnv):
+        return env.check_success()
     return bool(env._check_success())
 
 
@@ -151,6 +180,8 @@ def wrap(angle: float, period: float = 2 * np.pi) -> float:
 
 
 def object_pos(task: str, obs: dict) -> np.ndarray:
+    if libero.is_suite(task):
+        return np.asarray(obs["dyq_object"], dtype=np.float64)
     return np.asarray(obs[spec(task).object_key + "_pos"], dtype=np.float64)
 
 
@@ -200,6 +231,8 @@ def gripper_opening(obs: dict) -> float:
 
 def observation_names(task: str) -> list[str]:
     """Names of :func:`observation_vector`'s dims, in order."""
+    if libero.is_suite(task):
+        return list(libero.OBSERVATION_NAMES)
     names = ["eef_x", "eef_y", "eef_z", "finger_yaw_sin", "finger_yaw_cos", "eef_down_x", "eef_down_y",
              "gripper_opening", "grasp_x", "grasp_y", "grasp_z", "grasp_dx", "grasp_dy", "grasp_dz", "yaw_error"]
     if spec(task).yaw_period:
@@ -218,6 +251,8 @@ def observation_vector(task: str, obs: dict) -> np.ndarray:
     not, and relative to the end-effector), the yaw the expert still has to turn, the object's yaw in its
     symmetry period (sin/cos of period-scaled angle), and the object's offset from the goal (the bin or peg).
     """
+    if libero.is_suite(task):
+        return libero.observation_vector(obs)
     s = spec(task)
     eef = np.asarray(obs["robot0_eef_pos"], dtype=np.float64)
     yaw = finger_yaw(obs)

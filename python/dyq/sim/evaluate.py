@@ -41,6 +41,15 @@ COMPARISONS = (("dyq", "fp32"), ("dyq", "w4a16"), ("dyq", "w4a2"), ("dyq", "rand
 TARGET_RETENTION = 0.995
 # ... with at least this share of its control steps below 8 bits.
 TARGET_SHARE_BELOW_8 = 0.60
+# The LIBERO suites: LIBERO's own initial states, ten episodes per task by default, and the configs that
+# Table I of the paper needs.
+SUITE_CONFIGS = "fp32,w4a16,w4a8,w4a4,w4a2,dyq,random_schedule"
+SUITE_EPISODES = 100
+# DyQ-VLA's Table I (OpenVLA-7B fine-tuned on LIBERO's human demonstrations, 200 trials per suite), success %.
+PAPER_TABLE_I = {
+    "libero_object": {"BF16": 88.4, "SmoothQuant W4A4": 73.2, "QVLA W4A4": 87.6, "DyQ-VLA W4AX": 87.8},
+    "libero_spatial": {"BF16": 84.7, "SmoothQuant W4A4": 69.2, "QVLA W4A4": 84.4, "DyQ-VLA W4AX": 84.7},
+}
 
 
 def checkpoint_label(checkpoint: str | os.PathLike) -> str:
@@ -194,6 +203,13 @@ def summarize(episodes: list[dict[str, Any]]) -> dict[str, Any]:
     kernel_total = sum(kernel.values())
     latency = np.concatenate([np.asarray(e["latency_ms"]) for e in episodes]) if episodes else np.zeros(0)
     lo, hi = wilson_interval(successes, n) if n else (math.nan, math.nan)
+    per_task = {}
+    if episodes and envs.libero.is_suite(episodes[0]["task"]):
+        for e in episodes:
+            tally = per_task.setdefault(str(envs.libero.task_of_seed(e["seed"])[0]), [0, 0])
+            tally[0] += int(e["success"])
+            tally[1] += 1
+        per_task = dict(sorted(per_task.items(), key=lambda kv: int(kv[0])))
     return {
         "episodes": n,
         "successes": int(successes),
@@ -210,6 +226,7 @@ def summarize(episodes: list[dict[str, Any]]) -> dict[str, Any]:
             "p90": float(np.percentile(latency, 90)) if len(latency) else math.nan,
             "mean": float(latency.mean()) if len(latency) else math.nan,
         },
+        **({"per_task": per_task} if per_task else {}),
         "per_seed": {
             str(e["seed"]): {"success": bool(e["success"]), "steps": e["steps"],
                              "mean_bits": float(np.mean(e["bits"])), "bits_runs": run_lengths(e["bits"])}
@@ -260,7 +277,10 @@ def update_results(out: Path, task: str, seeds: list[int], checkpoint: str, dige
         import mujoco
         import robosuite
 
-        data["versions"] = {"robosuite": robosuite.__version__, "mujoco": mujoco.__version__}
+        # Per task: the LIBERO suites run in an environment of their own, with another robosuite.
+        entry["versions"] = {"robosuite": robosuite.__version__, "mujoco": mujoco.__version__}
+        if not envs.libero.is_suite(task):
+            data["versions"] = entry["versions"]
     except ImportError:
         pass
     data = _jsonable(data)
@@ -298,6 +318,19 @@ def markdown_table(data: dict[str, Any]) -> str:
                               f"{100 * row['share_below_8']:.0f} % of its steps below 8 bits (target: "
                               f"{100 * TARGET_RETENTION:.1f} % with {100 * TARGET_SHARE_BELOW_8:.0f} %): "
                               f"{'met' if met else 'not met'} on these {row['episodes']} seeds."]
+        if any("per_task" in row for row in entry["configs"].values()):
+            lines += ["", "Per LIBERO task (successes / episodes, task index: see `dyq.sim.libero.task_names`):", "",
+                      "| config | " + " | ".join(str(i) for i in range(envs.libero.TASKS_PER_SUITE)) + " |",
+                      "|---|" + "---|" * envs.libero.TASKS_PER_SUITE]
+            for name, row in entry["configs"].items():
+                cells = [f"{row['per_task'][str(i)][0]}/{row['per_task'][str(i)][1]}" if str(i) in row.get("per_task", {})
+                         else "" for i in range(envs.libero.TASKS_PER_SUITE)]
+                lines.append(f"| {name} | " + " | ".join(cells) + " |")
+        if task in PAPER_TABLE_I:
+            paper = ", ".join(f"{k} {v:.1f} %" for k, v in PAPER_TABLE_I[task].items())
+            lines += ["", f"The paper's Table I for this suite: {paper}. Its policy is OpenVLA-7B fine-tuned on "
+                          "LIBERO's human demonstrations and evaluated with camera images; ours is dyq's small "
+                          "state-token policy cloned from dyq's scripted expert, so only the shape compares."]
         if entry.get("comparisons"):
             lines += ["", "Paired on the same seeds (exact McNemar test on the discordant seeds):", ""]
             for c in entry["comparisons"]:
@@ -317,9 +350,16 @@ def default_checkpoint(task: str) -> Path:
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     from ..apps.usage import output_dir, output_file, positive_int
 
-    parser.add_argument("--tasks", default="lift,pick_place_can,square", help="comma-separated task names")
-    parser.add_argument("--configs", default="fp32,w4a16,w4a8,w4a4,w4a2,dyq", help="comma-separated configurations")
-    parser.add_argument("--episodes", type=positive_int, default=50, help="seeds 0 .. episodes-1 per task and configuration")
+    parser.add_argument("--tasks", default=None,
+                        help="comma-separated task names (default: lift,pick_place_can,square)")
+    parser.add_argument("--suite", choices=sorted(envs.LIBERO_TASKS), default=None,
+                        help=f"a LIBERO suite (in the `libero` environment): its task, configs {SUITE_CONFIGS} "
+                             f"and {SUITE_EPISODES} episodes by default, on LIBERO's official initial states")
+    parser.add_argument("--configs", default=None,
+                        help="comma-separated configurations (default: fp32,w4a16,w4a8,w4a4,w4a2,dyq)")
+    parser.add_argument("--episodes", type=positive_int, default=None,
+                        help=f"seeds 0 .. episodes-1 per task and configuration (default: 50; {SUITE_EPISODES} "
+                             "for a suite: seed s is task s %% 10 from its official initial state s // 10)")
     parser.add_argument("--checkpoint", action="append", default=[], metavar="TASK=DIR",
                         help="policy checkpoint for a task (default: the one that ships with dyq)")
     parser.add_argument("--workers", type=positive_int, default=max(1, (os.cpu_count() or 1)))
@@ -337,8 +377,12 @@ def main(args: argparse.Namespace) -> int:
     from .profile import calibrated_run_config
     from .rollout import CALIBRATED, run_config
 
-    tasks = [t for t in args.tasks.split(",") if t]
-    configs = [c for c in args.configs.split(",") if c]
+    if args.suite and args.tasks:
+        raise ValueError("give --suite or --tasks, not both")
+    tasks = [args.suite] if args.suite else [t for t in (args.tasks or "lift,pick_place_can,square").split(",") if t]
+    configs = [c for c in (args.configs or (SUITE_CONFIGS if args.suite else "fp32,w4a16,w4a8,w4a4,w4a2,dyq")).split(",") if c]
+    if args.episodes is None:
+        args.episodes = SUITE_EPISODES if args.suite else 50
     for task in tasks:
         envs.spec(task)
     for config in configs:

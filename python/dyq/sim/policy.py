@@ -7,6 +7,11 @@ actions' 1st/99th percentiles (:mod:`dyq.sim.tokens`). The model is a plain ``Ll
 from a config whose widths are multiples of the INT4 group size, so ``dyq.quantize_model`` converts every
 projection of every layer; embeddings and the LM head stay in full precision.
 
+A **multi-task** policy (the LIBERO suites: one policy for ten tasks) lists its tasks in ``tasks``; its
+observation vector then starts with the task's index (``observation_names[0] == "task_index"``), which
+becomes the prompt's task token (a task id, as OpenVLA's instruction tokens tell it the task) instead of a
+binned value, and the observation tokenizer covers the remaining dimensions.
+
 A checkpoint is a folder with ``model.safetensors`` (bf16 by default: a few MB) and ``policy.json``
 (the Llama config, the tokenizers' ranges, the observation names and how it was trained).
 """
@@ -25,6 +30,7 @@ import torch
 from .tokens import ACTION_DIMS, BINS, BinTokenizer, Vocabulary
 
 CHECKPOINT_FILE = "model.safetensors"
+TASK_INDEX = "task_index"
 CONFIG_FILE = "policy.json"
 
 
@@ -53,8 +59,12 @@ class PolicyConfig:
     layers: int = 4
     heads: int = 4
     training: dict = dataclasses.field(default_factory=dict)
+    tasks: list[str] = dataclasses.field(default_factory=list)  # multi-task: the task-id tokens' tasks
 
     def __post_init__(self):
+        if self.tasks and (not self.observation_names or self.observation_names[0] != TASK_INDEX):
+            raise ValueError(f"a multi-task policy's first observation must be {TASK_INDEX!r}, "
+                             f"got {self.observation_names[:1]}")
         for name in ("hidden_size", "intermediate_size"):
             value = getattr(self, name)
             if value % 128:
@@ -63,8 +73,18 @@ class PolicyConfig:
             raise ValueError(f"hidden_size {self.hidden_size} must be a multiple of heads {self.heads}")
 
     @property
+    def multi_task(self) -> bool:
+        return bool(self.tasks)
+
+    @property
+    def binned_observations(self) -> int:
+        """Observation dimensions that become binned tokens (all but the task index of a multi-task one)."""
+        return len(self.observation_names) - int(self.multi_task)
+
+    @property
     def vocabulary(self) -> Vocabulary:
-        return Vocabulary(tasks=(self.task,), observation_dims=len(self.observation_names))
+        return Vocabulary(tasks=tuple(self.tasks) if self.tasks else (self.task,),
+                          observation_dims=self.binned_observations)
 
     def llama_config(self):
         from transformers import LlamaConfig
@@ -111,7 +131,7 @@ class TokenPolicy:
         self.vocabulary = config.vocabulary
         self.observation_tokenizer = BinTokenizer.from_dict(config.observation_tokenizer)
         self.action_tokenizer = BinTokenizer.from_dict(config.action_tokenizer)
-        if self.observation_tokenizer.dims != len(config.observation_names):
+        if self.observation_tokenizer.dims != config.binned_observations:
             raise ValueError("observation tokenizer and observation_names disagree on the dimension count")
         if self.action_tokenizer.dims != ACTION_DIMS:
             raise ValueError(f"the action tokenizer must have {ACTION_DIMS} dimensions")
@@ -122,9 +142,22 @@ class TokenPolicy:
 
     # -- one control step ---------------------------------------------------------------------
 
+    def _prefix(self, observations: np.ndarray) -> np.ndarray:
+        """Prompt token ids of one observation ``[D]`` or a batch ``[N, D]``."""
+        observations = np.asarray(observations)
+        if observations.shape[-1] != len(self.config.observation_names):
+            raise ValueError(f"expected {len(self.config.observation_names)} observation values, "
+                             f"got shape {observations.shape}")
+        if not self.config.multi_task:
+            return self.vocabulary.prefix(self.config.task, self.observation_tokenizer.encode(observations))
+        index = observations[..., 0]
+        if np.any(index != np.round(index)) or np.any(index < 0) or np.any(index >= len(self.config.tasks)):
+            raise ValueError(f"task_index must be an integer in [0, {len(self.config.tasks)}), got {index}")
+        return self.vocabulary.prefix_of_tasks(index.astype(np.int64),
+                                               self.observation_tokenizer.encode(observations[..., 1:]))
+
     def prompt(self, observation: np.ndarray) -> torch.Tensor:
-        bins = self.observation_tokenizer.encode(observation)
-        return torch.from_numpy(self.vocabulary.prefix(self.config.task, bins)).reshape(1, -1)
+        return torch.from_numpy(self._prefix(observation)).reshape(1, -1)
 
     @torch.inference_mode()
     def prefill(self, observation: np.ndarray) -> tuple[Any, int]:
@@ -161,7 +194,7 @@ class TokenPolicy:
 
     def sequences(self, observations: np.ndarray, actions: np.ndarray) -> tuple[torch.Tensor, torch.Tensor]:
         """Token ids ``[N, P + 7]`` of whole steps and the action bins ``[N, 7]`` they should decode."""
-        prefix = self.vocabulary.prefix(self.config.task, self.observation_tokenizer.encode(observations))
+        prefix = self._prefix(observations)
         action_bins = self.action_tokenizer.encode(actions)
         ids = np.concatenate([prefix, self.vocabulary.action_tokens(action_bins)], axis=1)
         return torch.from_numpy(ids), torch.from_numpy(action_bins)

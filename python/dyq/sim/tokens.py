@@ -129,6 +129,19 @@ class Vocabulary:
                                observation_bins.shape[:-1] + (2,))
         return np.concatenate([head, observation_bins + offsets], axis=-1)
 
+    def prefix_of_tasks(self, task_indices: np.ndarray, observation_bins: np.ndarray) -> np.ndarray:
+        """:meth:`prefix` with the task given per row by its index into ``tasks``."""
+        task_indices = np.asarray(task_indices, dtype=np.int64)
+        observation_bins = np.asarray(observation_bins, dtype=np.int64)
+        if np.any(task_indices < 0) or np.any(task_indices >= len(self.tasks)):
+            raise ValueError(f"task indices must lie in [0, {len(self.tasks)}), got {task_indices}")
+        if observation_bins.shape[-1] != self.observation_dims or observation_bins.shape[:-1] != task_indices.shape:
+            raise ValueError(f"expected {self.observation_dims} observation bins per task index, got shapes "
+                             f"{observation_bins.shape} and {task_indices.shape}")
+        offsets = self.first_observation + self.bins * np.arange(self.observation_dims)
+        head = np.stack([np.full_like(task_indices, BOS), self.first_task + task_indices], axis=-1)
+        return np.concatenate([head, observation_bins + offsets], axis=-1)
+
     def action_tokens(self, action_bins: np.ndarray) -> np.ndarray:
         return np.asarray(action_bins, dtype=np.int64) + self.first_action
 

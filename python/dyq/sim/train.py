@@ -10,6 +10,7 @@ plus ``policy.json``, with the command line that produced it.
 from __future__ import annotations
 
 import argparse
+import json
 import math
 import shlex
 import sys
@@ -20,7 +21,7 @@ import numpy as np
 import torch
 
 from . import dispatch_budget
-from .policy import PolicyConfig, TokenPolicy
+from .policy import TASK_INDEX, PolicyConfig, TokenPolicy
 from .tokens import BinTokenizer
 
 STATE_FILE = "train_state.pt"
@@ -48,6 +49,23 @@ def load_demonstrations(path: str | Path) -> tuple[list[np.ndarray], list[np.nda
     if not observations:
         raise ValueError(f"{path} holds no demonstrations")
     return observations, actions, observation_names
+
+
+def task_names_of(path: str | Path) -> list[str]:
+    """The tasks of a multi-task demonstration file: its ``data`` attr ``task_names`` (a JSON list), or
+    the LIBERO suite's task names where the file names a suite as its task."""
+    import h5py
+
+    from . import libero
+
+    with h5py.File(path, "r") as f:
+        names = f["data"].attrs.get("task_names")
+        task = f["data"].attrs.get("task")
+    if names is not None:
+        return [str(n) for n in json.loads(names)]
+    if task is not None and libero.is_suite(str(task)):
+        return libero.task_names(str(task))
+    raise ValueError(f"{path} has task_index observations but no task_names attribute")
 
 
 def _lr(step: int, steps: int, peak: float, warmup: int) -> float:
@@ -78,10 +96,13 @@ def train(task: str, data: str | Path, out: str | Path, *, steps: int = 3000, ba
     val_act = np.concatenate(actions[-validation_demos:]) if validation_demos else train_act[:0]
 
     torch.manual_seed(seed)
+    tasks = task_names_of(data) if names and names[0] == TASK_INDEX else []
+    binned = train_obs[:, 1:] if tasks else train_obs
     config = PolicyConfig(
         task=task,
+        tasks=tasks,
         observation_names=list(names),
-        observation_tokenizer=BinTokenizer.range_with_margin(train_obs).to_dict(),
+        observation_tokenizer=BinTokenizer.range_with_margin(binned).to_dict(),
         action_tokenizer=BinTokenizer.percentiles(train_act).to_dict(),
         hidden_size=hidden_size, intermediate_size=intermediate_size, layers=layers, heads=heads,
         training={"data": str(data), "demos": len(observations) - validation_demos, "samples": len(train_obs),
@@ -172,7 +193,7 @@ def load_calibration_set(checkpoint: str | Path) -> tuple[np.ndarray, np.ndarray
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     from ..apps.usage import input_file, nonnegative_int, output_dir, positive_float, positive_int
 
-    parser.add_argument("task", help="task name (lift, pick_place_can, square)")
+    parser.add_argument("task", help="task name (lift, pick_place_can, square, libero_object, libero_spatial)")
     parser.add_argument("--data", required=True, type=input_file(".hdf5", ".h5"),
                         help="demonstrations (HDF5, robomimic layout) from `dyq collect`")
     parser.add_argument("--out", required=True, type=output_dir, help="output folder for the checkpoint")
@@ -199,7 +220,7 @@ def main(args: argparse.Namespace) -> int:
                    hidden_size=args.hidden_size, intermediate_size=args.intermediate_size, layers=args.layers,
                    heads=args.heads, seed=args.seed, save_every=args.save_every,
                    validation_demos=args.validation_demos, command=command,
-                   observation_names=envs.observation_names(args.task) if args.task in envs.TASKS else None)
+                   observation_names=envs.observation_names(args.task) if args.task in envs.ALL_TASKS else None)
     info = policy.config.training
     print(f"saved {args.out}: loss {info['final_loss']:.3f}, validation token accuracy "
           f"{info['validation_token_accuracy']:.3f}")

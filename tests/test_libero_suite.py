@@ -1,0 +1,162 @@
+"""The LIBERO suites' pieces that need no LIBERO install: seeds, geometry, the multi-task policy's prompt;
+and, where the ``libero`` extra is installed, one short episode of each suite."""
+import importlib.util
+import types
+
+import numpy as np
+import pytest
+import torch
+
+from dyq.sim import envs, libero
+from dyq.sim.policy import PolicyConfig, TokenPolicy
+from dyq.sim.tokens import BOS, BinTokenizer, Vocabulary
+
+HAS_LIBERO = importlib.util.find_spec("libero") is not None
+
+
+def test_seeds_cover_the_official_states_then_perturbed_ones():
+    official = [libero.task_of_seed(s) for s in libero.OFFICIAL_SEEDS]
+    assert sorted((t, i) for t, i, p in official) == [(t, i) for t in range(10) for i in range(50)]
+    assert not any(p for _, _, p in official)
+    assert libero.task_of_seed(500) == (0, 0, True)
+    assert libero.task_of_seed(envs.DEMO_SEED0 + 13) == (3, (envs.DEMO_SEED0 + 13) // 10 % 50, True)
+    with pytest.raises(ValueError, match="seed"):
+        libero.task_of_seed(-1)
+
+
+def test_suites_are_tasks():
+    for suite in libero.SUITES:
+        assert envs.spec(suite).horizon == libero.SUITES[suite].horizon
+        assert envs.observation_names(suite) == libero.OBSERVATION_NAMES
+    with pytest.raises(ValueError, match="unknown task"):
+        envs.spec("libero_goal")
+
+
+def _brute_force_overlap(a, b, n=200):
+    """Whether two convex quadrilaterals intersect, by sampling points of ``a`` and testing them in ``b``."""
+    def inside(poly, p):
+        signs = [np.cross(poly[(i + 1) % 4] - poly[i], p - poly[i]) for i in range(4)]
+        return all(s >= 0 for s in signs) or all(s <= 0 for s in signs)
+    rng = np.random.default_rng(0)
+    for _ in range(n):
+        u, v = rng.random(2)
+        p = (1 - u) * ((1 - v) * a[0] + v * a[1]) + u * ((1 - v) * a[3] + v * a[2])
+        if inside(b, p):
+            return True
+    return False
+
+
+@pytest.mark.parametrize("seed", range(20))
+def test_box_overlap_sign_matches_brute_force(seed):
+    rng = np.random.default_rng(seed)
+    a = libero.hand_box(rng.uniform(-0.1, 0.1, 2), rng.uniform(-np.pi, np.pi))
+    b = libero.hand_box(rng.uniform(-0.1, 0.1, 2), rng.uniform(-np.pi, np.pi))
+    depth = libero._boxes_overlap(a, b)
+    if abs(depth) > 1e-3:
+        assert (depth > 0) == (_brute_force_overlap(a, b) or _brute_force_overlap(b, a))
+    # Two boxes moved apart along x by more than their extent: negative, the gap between them.
+    far = libero._boxes_overlap(libero.hand_box(np.zeros(2), 0.0), libero.hand_box(np.array([0.3, 0.0]), 0.0))
+    assert far == pytest.approx(-(0.3 - 2 * libero.HAND_HALF_ALONG))
+
+
+def _sim(xml):
+    mujoco = pytest.importorskip("mujoco")
+    model = mujoco.MjModel.from_xml_string(xml)
+    data = mujoco.MjData(model)
+    mujoco.mj_forward(model, data)
+    # robosuite's binding names the body poses body_xpos / body_xmat; raw MuJoCo names them xpos / xmat.
+    view = types.SimpleNamespace(body_xpos=data.xpos, body_xmat=data.xmat, geom_xpos=data.geom_xpos,
+                                 geom_xmat=data.geom_xmat)
+    return types.SimpleNamespace(model=model, data=view)
+
+
+def test_footprint_of_a_turned_box_and_a_grasp_across_its_narrow_side():
+    yaw = 0.4
+    quat = f"{np.cos(yaw / 2)} 0 0 {np.sin(yaw / 2)}"
+    sim = _sim(f"""<mujoco><worldbody>
+        <body name="box" pos="0.1 0.2 0.03" quat="{quat}"><geom type="box" size="0.05 0.02 0.03"/></body>
+        <body name="far" pos="1 1 0.03"><geom type="box" size="0.02 0.02 0.03"/></body>
+        </worldbody></mujoco>""")
+    fp = libero.footprint(sim, 1)
+    assert np.allclose(fp.centre, [0.1, 0.2])
+    assert sorted(fp.half_sizes) == pytest.approx([0.02, 0.05])
+    assert (fp.bottom, fp.top) == pytest.approx((0.0, 0.06))
+    plan = libero.plan_grasp(sim, 1, [2], current_finger_yaw=0.0, robot_base=np.array([-0.6, 0.0, 0.0]))
+    # Fingers close across the 4 cm side: along the box's local y, i.e. yaw + 90 degrees (mod 180).
+    finger = yaw + plan.yaw_offset
+    assert abs(np.sin(finger - (yaw + np.pi / 2))) < 1e-6
+    assert plan.clearance > 0.5 and not plan.rim
+
+
+def test_a_bowl_wider_than_the_gripper_is_taken_by_the_rim_nearest_the_robot():
+    sim = _sim("""<mujoco><worldbody>
+        <body name="bowl" pos="0.0 0.0 0.025"><geom type="cylinder" size="0.055 0.025"/></body>
+        </worldbody></mujoco>""")
+    plan = libero.plan_grasp(sim, 1, [], current_finger_yaw=0.0, robot_base=np.array([-0.6, 0.0, 0.0]))
+    assert plan.rim
+    assert np.linalg.norm(plan.offset_local[:2]) == pytest.approx(0.055 - libero.RIM_INSET)
+    assert plan.offset_local[0] < -0.04  # the near side
+
+
+def _multi_task_policy(tasks=("a", "b", "c"), dims=4):
+    rng = np.random.default_rng(0)
+    values = rng.normal(size=(64, dims))
+    config = PolicyConfig(task="suite", tasks=list(tasks), observation_names=["task_index"] + [f"o{i}" for i in range(dims)],
+                          observation_tokenizer=BinTokenizer.range_with_margin(values).to_dict(),
+                          action_tokenizer=BinTokenizer.percentiles(rng.normal(size=(64, 7))).to_dict(),
+                          hidden_size=128, intermediate_size=128, layers=1, heads=2)
+    return TokenPolicy(config), values
+
+
+def test_multi_task_prompt_puts_the_task_index_in_the_task_token():
+    policy, values = _multi_task_policy()
+    vocab = policy.vocabulary
+    tokenizer = policy.observation_tokenizer
+    for index in range(3):
+        obs = np.concatenate([[index], values[index]])
+        ids = policy.prompt(obs)[0].numpy()
+        # Independent of the prefix builders: BOS, the index-th task token, then dimension-major bins.
+        bins = np.clip(np.floor((np.clip(2 * (values[index] - tokenizer.low) / (tokenizer.high - tokenizer.low) - 1,
+                                         -1, 1) + 1) * 0.5 * 256), 0, 255)
+        expected = [BOS, vocab.first_task + index] + list(vocab.first_observation + 256 * np.arange(4) + bins)
+        assert ids.tolist() == expected
+    batch = np.concatenate([np.array([[2], [0]]), values[:2]], axis=1)
+    ids, _ = policy.sequences(batch, np.zeros((2, 7)))
+    assert ids[:, 1].tolist() == [vocab.first_task + 2, vocab.first_task]
+    logits = policy.action_logits(ids)
+    assert logits.shape == (2, 7, 256) and torch.isfinite(logits).all()
+
+
+def test_multi_task_prompt_rejects_bad_task_indices():
+    policy, values = _multi_task_policy()
+    for bad in (3, -1, 0.5):
+        with pytest.raises(ValueError, match="task_index"):
+            policy.prompt(np.concatenate([[bad], values[0]]))
+    with pytest.raises(ValueError, match="observation values"):
+        policy.prompt(values[0])
+    with pytest.raises(ValueError, match="task_index"):
+        PolicyConfig(task="suite", tasks=["a"], observation_names=["x"], observation_tokenizer={},
+                     action_tokenizer={})
+    with pytest.raises(ValueError, match="task indices"):
+        Vocabulary(tasks=("a",), observation_dims=1).prefix_of_tasks(np.array([1]), np.array([[0]]))
+
+
+@pytest.mark.skipif(not HAS_LIBERO, reason="the libero extra is not installed (scripts/setup_libero.sh)")
+@pytest.mark.parametrize("suite", sorted(libero.SUITES))
+def test_one_expert_episode_succeeds(suite):
+    from dyq.sim import experts
+
+    env = envs.make_env(suite)
+    expert = experts.make_expert(suite)
+    obs = envs.reset_env(env, 0)
+    expert.reset(env)
+    success = False
+    for _ in range(envs.spec(suite).horizon):
+        vector = envs.observation_vector(suite, obs)
+        assert vector.shape == (len(libero.OBSERVATION_NAMES),) and vector[0] == 0
+        obs, _, _, _ = envs.step_env(env, expert.act(env, obs))
+        if envs.check_success(env):
+            success = True
+            break
+    env.close()
+    assert success
