@@ -270,6 +270,10 @@ def update_results(out: Path, task: str, seeds: list[int], checkpoint: str, dige
     entry.update(horizon=envs.spec(task).horizon, seeds=seeds, checkpoint=checkpoint_label(checkpoint),
                  checkpoint_digest=digest)
     entry["configs"].update(rows)
+    import dyq
+
+    # The CPU kernel path of this run (its W4A16 fallback is bf16 on CPUs with AVX512-BF16, fp32 before).
+    entry["cpu_isa"] = dyq.cpu_info()["isa"]
     entry["comparisons"] = [c for c in (compare(entry["configs"], a, b) for a, b in COMPARISONS) if c]
     data["device"] = "cpu"
     data["environment"] = results_io.environment()
