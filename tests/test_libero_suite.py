@@ -160,3 +160,24 @@ def test_one_expert_episode_succeeds(suite):
             break
     env.close()
     assert success
+
+
+def test_suite_rows_count_per_task_and_quote_the_paper(tmp_path):
+    from dyq.sim import evaluate
+
+    rng = np.random.default_rng(3)
+    outcome = rng.random(40) < 0.6
+    episodes = [{"task": "libero_object", "seed": s, "success": bool(outcome[s]), "steps": 5, "bits": [16] * 5,
+                 "latency_ms": [1.0] * 5, "prefill_kernel_bits": [{}] * 5, "decode_kernel_bits": [{}] * 5}
+                for s in range(40)]
+    row = evaluate.summarize(episodes)
+    for task in range(10):
+        seeds = [s for s in range(40) if s % 10 == task]
+        assert row["per_task"][str(task)] == [int(outcome[seeds].sum()), len(seeds)]
+    data = evaluate.update_results(tmp_path / "r.json", "libero_object", list(range(40)), "ckpt", "abc",
+                                   {"fp32": row})
+    table = evaluate.markdown_table(data)
+    assert "| fp32 | " + " | ".join(f"{s}/{n}" for s, n in row["per_task"].values()) + " |" in table
+    assert "BF16 88.4 %" in table and "DyQ-VLA W4AX 87.8 %" in table
+    # A robosuite task's rows have no per-task split.
+    assert "per_task" not in evaluate.summarize([dict(e, task="lift") for e in episodes])

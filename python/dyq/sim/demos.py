@@ -124,8 +124,9 @@ def collect(task: str, n_demos: int, out_path, seed0: int = envs.DEMO_SEED0, noi
             if (str(stored["task"]), float(stored["noise"]), int(stored["seed0"])) != (task, noise, seed0):
                 raise ValueError(f"{out_path} was collected with {stored}, not task={task!r}, noise={noise}, "
                                  f"seed0={seed0}: collect into another file")
-            attempts, successes = int(data.attrs["attempts"]), int(data.attrs["successes"])
             per_task = {int(k): v for k, v in json.loads(data.attrs["per_task_success"]).items()}
+            attempts = int(data.attrs["attempts"])
+            successes = int(data.attrs.get("successes", sum(s for s, _ in per_task.values())))
             steps = [int(data[f"demo_{i}"].attrs["num_samples"]) for i in range(int(data.attrs["kept"]))]
             for name in [k for k in data if int(k.split("_")[1]) >= len(steps)]:
                 del data[name]  # written after the last flushed totals

@@ -204,7 +204,7 @@ def summarize(episodes: list[dict[str, Any]]) -> dict[str, Any]:
     latency = np.concatenate([np.asarray(e["latency_ms"]) for e in episodes]) if episodes else np.zeros(0)
     lo, hi = wilson_interval(successes, n) if n else (math.nan, math.nan)
     per_task = {}
-    if episodes and envs.libero.is_suite(episodes[0]["task"]):
+    if episodes and envs.libero.is_suite(episodes[0].get("task", "")):
         for e in episodes:
             tally = per_task.setdefault(str(envs.libero.task_of_seed(e["seed"])[0]), [0, 0])
             tally[0] += int(e["success"])
@@ -364,6 +364,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--episodes", type=positive_int, default=None,
                         help=f"seeds 0 .. episodes-1 per task and configuration (default: 50; {SUITE_EPISODES} "
                              "for a suite: seed s is task s %% 10 from its official initial state s // 10)")
+    parser.add_argument("--seed0", type=int, default=0,
+                        help="first seed (default 0); a LIBERO suite's seeds from 500 on are perturbed states: "
+                             "write those rows to their own --out and --table")
     parser.add_argument("--checkpoint", action="append", default=[], metavar="TASK=DIR",
                         help="policy checkpoint for a task (default: the one that ships with dyq)")
     parser.add_argument("--workers", type=positive_int, default=max(1, (os.cpu_count() or 1)))
@@ -406,7 +409,9 @@ def main(args: argparse.Namespace) -> int:
                               else run_config(name)) for name in configs + ["dyq"]} for task in tasks}
     cache_names = {task: {name: config_cache_name(run, checkpoints[task]) for name, run in resolved[task].items()}
                    for task in tasks}
-    seeds = list(range(args.episodes))
+    if args.seed0 < 0:
+        raise ValueError(f"--seed0 must be >= 0, got {args.seed0}")
+    seeds = list(range(args.seed0, args.seed0 + args.episodes))
     scheduled = [c for c in configs if resolved[tasks[0]][c].kind == "schedule"] if tasks else []
     # Schedules are drawn from DyQ's episode on the same seed, so those run first.
     first = [c for c in configs if c not in scheduled] + (["dyq"] if scheduled and "dyq" not in configs else [])
