@@ -3,6 +3,7 @@ import copy
 
 import pytest
 import torch
+from helpers import bf16_fallback
 
 import dyq
 from dyq import reference
@@ -54,7 +55,10 @@ def test_quantized_llama_matches_the_float_model_with_int4_weights(bits):
         dyq.quantize_model(model, flag=dyq.PrecisionFlag(bits))
         logits = model(ids).logits
     rel = ((logits - expected).norm() / expected.norm()).item()
-    assert rel < {16: 1e-5, 8: 0.02, 4: 0.3, 2: 1.0}[bits]
+    # At 16 bits only the float sums differ, unless the CPU's W4A16 runs on bf16 dot products, which round
+    # the activations to bf16 (2^-9 relative each: docs/numerics.md).
+    exact = 8e-3 if bf16_fallback(ids.numel(), model.config.hidden_size, 128) else 1e-5
+    assert rel < {16: exact, 8: 0.02, 4: 0.3, 2: 1.0}[bits]
     # Random-init weights are Gaussian: round-to-nearest INT4 costs about 20 % of the logits' norm.
     assert ((expected - float_logits).norm() / float_logits.norm()).item() < 0.3
 

@@ -9,6 +9,7 @@ import math
 
 import pytest
 import torch
+from helpers import assert_gemm_close
 
 import dyq
 from dyq import reference
@@ -64,8 +65,9 @@ def test_every_method_writes_the_documented_format(method, in_features, group_si
     for bits in (16, 4):
         layer.set_precision(bits)
         xk = torch.nn.functional.pad(x, (0, k - in_features))
-        expected = reference.gemm(xk, layer.qweight, layer.scales, group_size, bits, layer.bias)
-        torch.testing.assert_close(layer(x).double(), expected, rtol=1e-5, atol=1e-5)
+        # The float64 reference GEMM on those buffers, within the kernels' documented rounding (on CPUs with
+        # AVX512-BF16 the W4A16 fallback rounds x to bf16: docs/numerics.md).
+        assert_gemm_close(layer(x), xk, layer.qweight, layer.scales, group_size, bits, layer.bias)
 
 
 def test_clipping_finds_the_known_optimum_of_a_group():
