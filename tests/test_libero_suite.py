@@ -181,3 +181,16 @@ def test_suite_rows_count_per_task_and_quote_the_paper(tmp_path):
     assert "BF16 88.4 %" in table and "DyQ-VLA W4AX 87.8 %" in table
     # A robosuite task's rows have no per-task split.
     assert "per_task" not in evaluate.summarize([dict(e, task="lift") for e in episodes])
+
+
+def test_a_box_is_taken_off_centre_when_a_neighbour_blocks_the_hand():
+    sim = _sim("""<mujoco><worldbody>
+        <body name="box" pos="0 0 0.01"><geom type="box" size="0.04 0.02 0.01"/></body>
+        <body name="jar" pos="-0.03 0.08 0.03"><geom type="box" size="0.015 0.015 0.03"/></body>
+        </worldbody></mujoco>""")
+    centred = libero.plan_grasp(sim, 1, [], current_finger_yaw=np.pi / 2, robot_base=np.array([0.0, -0.6, 0.0]))
+    assert np.allclose(centred.offset_local[:2], 0.0)
+    plan = libero.plan_grasp(sim, 1, [2], current_finger_yaw=np.pi / 2, robot_base=np.array([0.0, -0.6, 0.0]))
+    # Fingers across y (the narrow side), shifted along +x, away from the jar, until the hand clears it.
+    assert abs(np.cos(plan.yaw_offset)) < 1e-6
+    assert 0.0 < plan.offset_local[0] <= 0.6 * 0.04 + 1e-9 and plan.clearance > 0

@@ -213,8 +213,9 @@ def plan_grasp(sim, target: int, neighbours: list[int], current_finger_yaw: floa
                robot_base: np.ndarray) -> GraspPlan:
     """The grasp with the most clearance between the hand and the neighbours: across the object's narrow
     side (either way round) for boxes, at any of 16 yaws for round objects, or on the rim at any of 16
-    points for objects wider than the gripper. Among grasps clear by 3 cm, the nearest to the robot's base
-    wins (far rim points are out of the arm's reach at the hover height), then the smallest turn."""
+    points for objects wider than the gripper; a box may also be taken off its centre along its long side.
+    Among grasps clear by 3 cm, the nearest to the robot's base wins (far rim points are out of the arm's
+    reach at the hover height), then the one nearest the centre and with the smallest turn."""
     fp = footprint(sim, target)
     rot = sim.data.body_xmat[target].reshape(3, 3)
     body_pos = sim.data.body_xpos[target]
@@ -234,8 +235,13 @@ def plan_grasp(sim, target: int, neighbours: list[int], current_finger_yaw: floa
         for k in range(16):
             candidates.append((fp.centre, np.pi * k / 16, False))
     else:
+        # Across the narrow side, at the centre or shifted along the long side (away from a neighbour that
+        # the hand would land on), keeping the fingers well inside the object's length.
         yaw = axis_yaw + (0.0 if narrow == 0 else np.pi / 2)
-        candidates += [(fp.centre, yaw, False), (fp.centre, yaw + np.pi, False)]
+        long_axis = fp.axis if narrow == 1 else np.array([-fp.axis[1], fp.axis[0]])
+        for shift in (0.0, -0.3, 0.3, -0.6, 0.6):
+            point = fp.centre + shift * fp.half_sizes.max() * long_axis
+            candidates += [(point, yaw, False), (point, yaw + np.pi, False)]
 
     def score(c):
         point, yaw, _ = c
@@ -244,7 +250,8 @@ def plan_grasp(sim, target: int, neighbours: list[int], current_finger_yaw: floa
                     default=1.0)
         turn = abs((yaw - current_finger_yaw + np.pi / 2) % np.pi - np.pi / 2)
         reach = float(np.linalg.norm(point[:2] - robot_base[:2]))
-        return min(clear, 0.03) - 0.3 * reach - 0.01 * turn, clear
+        off_centre = 0.0 if c[2] else float(np.linalg.norm(point[:2] - fp.centre))
+        return min(clear, 0.03) - 0.3 * reach - 0.01 * turn - 0.5 * off_centre, clear
 
     best = max(candidates, key=lambda c: score(c)[0])
     point, yaw, rim = best
