@@ -22,6 +22,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from . import libero
+from .pose import finger_yaw, quat_to_mat, quat_yaw, wrap  # noqa: F401  (part of this module's interface)
 
 DEMO_SEED0 = 100_000
 EVAL_SEEDS = range(1000)
@@ -152,32 +153,6 @@ def check_success(env) -> bool:
 
 
 # ---------------------------------------------------------------------------------------- observations
-
-def quat_yaw(quat_xyzw: np.ndarray) -> float:
-    """Yaw (rad) of the body's local x axis projected on the world xy plane."""
-    x, y, z, w = quat_xyzw
-    return float(np.arctan2(2 * (x * y + w * z), 1 - 2 * (y * y + z * z)))
-
-
-def quat_to_mat(quat_xyzw: np.ndarray) -> np.ndarray:
-    x, y, z, w = quat_xyzw
-    return np.array([
-        [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-        [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-        [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
-    ])
-
-
-def finger_yaw(obs: dict) -> float:
-    """Yaw of the line the Panda's fingers close along: the end-effector's local x axis turned by 90 degrees
-    (measured from the finger pads' positions)."""
-    return quat_yaw(obs["robot0_eef_quat"]) + np.pi / 2
-
-
-def wrap(angle: float, period: float = 2 * np.pi) -> float:
-    """``angle`` folded into [-period/2, period/2)."""
-    return float((angle + period / 2) % period - period / 2)
-
 
 def object_pos(task: str, obs: dict) -> np.ndarray:
     if libero.is_suite(task):

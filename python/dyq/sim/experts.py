@@ -44,6 +44,16 @@ def rotation_command(obs: dict, finger_yaw: float) -> np.ndarray:
     return np.clip(ROT_GAIN * angle * axis, -1.0, 1.0)
 
 
+def move_command(obs: dict, target: np.ndarray, gripper: float, finger_yaw: float) -> np.ndarray:
+    """One expert action: the saturating step towards ``target`` for the end-effector, the rotation to
+    point down with the finger line at ``finger_yaw``, and the gripper command."""
+    action = np.zeros(7)
+    action[:3] = np.clip(POS_GAIN * (np.asarray(target) - obs["robot0_eef_pos"]), -1.0, 1.0)
+    action[3:6] = rotation_command(obs, finger_yaw)
+    action[6] = gripper
+    return action
+
+
 def noisy_action(clean: np.ndarray, rng: np.random.Generator, scale: float) -> np.ndarray:
     """DART-style execution noise: Gaussian noise of std ``scale`` on every channel of the executed action,
     clipped to [-1, 1]. The recorded label stays ``clean``, so a cloned policy learns the expert's
@@ -71,11 +81,7 @@ class Expert:
         self.closed_for = 0
 
     def _move(self, obs: dict, target: np.ndarray, gripper: float, yaw: float | None = None) -> np.ndarray:
-        action = np.zeros(7)
-        action[:3] = np.clip(POS_GAIN * (target - obs["robot0_eef_pos"]), -1.0, 1.0)
-        action[3:6] = rotation_command(obs, envs.target_finger_yaw(self.task, obs) if yaw is None else yaw)
-        action[6] = gripper
-        return action
+        return move_command(obs, target, gripper, envs.target_finger_yaw(self.task, obs) if yaw is None else yaw)
 
     def _yaw_error(self, obs: dict) -> float:
         return abs(envs.target_finger_yaw(self.task, obs) - envs.finger_yaw(obs))

@@ -28,6 +28,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .pose import finger_yaw, quat_to_mat, wrap
+
 SETTLE_STEPS = 10
 PERTURB_XY = 0.025  # m, each movable object, uniform in [-PERTURB_XY, PERTURB_XY] per axis
 PERTURB_YAW = np.radians(30.0)
@@ -87,20 +89,6 @@ def task_names(suite: str) -> list[str]:
 
 
 # ------------------------------------------------------------------------------------------ geometry
-
-def _quat_to_mat(quat_xyzw) -> np.ndarray:
-    x, y, z, w = quat_xyzw
-    return np.array([
-        [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-        [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-        [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
-    ])
-
-
-def _yaw(quat_xyzw) -> float:
-    x, y, z, w = quat_xyzw
-    return float(np.arctan2(2 * (x * y + w * z), 1 - 2 * (y * y + z * z)))
-
 
 @dataclass
 class Footprint:
@@ -263,16 +251,6 @@ def plan_grasp(sim, target: int, neighbours: list[int], current_finger_yaw: floa
 
 
 # ------------------------------------------------------------------------------------------ environment
-
-def _wrap(angle: float, period: float = 2 * np.pi) -> float:
-    return float((angle + period / 2) % period - period / 2)
-
-
-def finger_yaw(obs: dict) -> float:
-    """Yaw of the line the fingers close along (as :func:`dyq.sim.envs.finger_yaw`; measured from the
-    finger pads' positions in LIBERO's Panda too)."""
-    return _yaw(obs["robot0_eef_quat"]) + np.pi / 2
-
 
 def holding(eef: np.ndarray, grasp: np.ndarray, gripper_qpos) -> bool:
     """The fingers are closed on the target: its grasp point between them and the fingers short of fully
@@ -440,7 +418,7 @@ class SuiteEnv:
         pos = sim.data.body_xpos[b].copy()
         body_yaw = float(np.arctan2(rot[1, 0], rot[0, 0]))
         current = finger_yaw(obs)
-        grasp_yaw = current + _wrap(body_yaw + self.plan.yaw_offset - current, np.pi)
+        grasp_yaw = current + wrap(body_yaw + self.plan.yaw_offset - current, np.pi)
         if holding(obs["robot0_eef_pos"], pos + rot @ self.plan.offset_local, obs["robot0_gripper_qpos"]):
             grasp_yaw = current  # in the hand, it turns with it: the hand holds its yaw
         obs["dyq_task_index"] = self.task_index
@@ -472,7 +450,7 @@ def observation_vector(obs: dict) -> np.ndarray:
     which the policy reads as its task-id token rather than as a binned value."""
     eef = np.asarray(obs["robot0_eef_pos"], dtype=np.float64)
     yaw = finger_yaw(obs)
-    down = _quat_to_mat(obs["robot0_eef_quat"])[:, 2]
+    down = quat_to_mat(obs["robot0_eef_quat"])[:, 2]
     q = obs["robot0_gripper_qpos"]
     grasp = np.asarray(obs["dyq_grasp"])
     place = np.asarray(obs["dyq_place"])
@@ -506,13 +484,9 @@ class PickPlaceExpert:
         self.count = 0
 
     def _move(self, obs: dict, target: np.ndarray, gripper: float, yaw: float | None = None) -> np.ndarray:
-        from .experts import POS_GAIN, rotation_command
+        from .experts import move_command  # experts imports envs, which imports this module
 
-        action = np.zeros(7)
-        action[:3] = np.clip(POS_GAIN * (np.asarray(target) - obs["robot0_eef_pos"]), -1.0, 1.0)
-        action[3:6] = rotation_command(obs, obs["dyq_grasp_yaw"] if yaw is None else yaw)
-        action[6] = gripper
-        return action
+        return move_command(obs, target, gripper, obs["dyq_grasp_yaw"] if yaw is None else yaw)
 
     def _held(self, obs: dict) -> bool:
         return holding(obs["robot0_eef_pos"], obs["dyq_grasp"], obs["robot0_gripper_qpos"])
