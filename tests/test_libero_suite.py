@@ -194,3 +194,31 @@ def test_a_box_is_taken_off_centre_when_a_neighbour_blocks_the_hand():
     # Fingers across y (the narrow side), shifted along +x, away from the jar, until the hand clears it.
     assert abs(np.cos(plan.yaw_offset)) < 1e-6
     assert 0.0 < plan.offset_local[0] <= 0.6 * 0.04 + 1e-9 and plan.clearance > 0
+
+
+def _closing_obs(opening: float) -> dict:
+    """The expert's view while its fingers close on an object at the grasp point."""
+    return {"robot0_eef_pos": np.array([0.1, 0.0, 0.9]), "dyq_grasp": np.array([0.1, 0.0, 0.9]),
+            "dyq_place": np.array([0.2, 0.2, 0.95]), "dyq_carry_z": 1.05, "dyq_grasp_yaw": 0.0,
+            "robot0_eef_quat": np.array([1.0, 0.0, 0.0, 0.0]),
+            "robot0_gripper_qpos": np.array([opening / 2, -opening / 2])}
+
+
+@pytest.mark.parametrize("openings, lifts_at", [
+    # Closing on an object: the fingers stop 0.3 mm apart (under the 1 mm rule) at the 7th step.
+    ([0.079, 0.074, 0.065, 0.055, 0.049, 0.0475, 0.0472, 0.0471, 0.0471, 0.0471, 0.0471], 7),
+    # Fingers that never settle: the step count still ends the wait.
+    ([0.079 - 0.005 * i for i in range(12)], libero.PickPlaceExpert.close_steps),
+])
+def test_the_expert_lifts_when_the_fingers_have_settled(openings, lifts_at):
+    # The wait after closing ends on what the policy sees (the opening stops changing), so the cloned
+    # policy has no observation that means both "wait" and "lift".
+    expert = libero.PickPlaceExpert()
+    expert.reset(None)
+    expert.phase, expert.count, expert.last_opening = "close", 0, None
+    for step, opening in enumerate(openings, start=1):
+        action = expert.act(None, _closing_obs(opening))
+        assert action[6] == 1.0  # still closing
+        if expert.phase == "lift":
+            break
+    assert (step, expert.phase) == (lifts_at, "lift")

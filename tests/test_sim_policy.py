@@ -141,3 +141,34 @@ def test_training_lowers_the_loss_and_resumes(tmp_path):
     resumed = train("lift", path, tmp_path / "a", **kwargs)
     for a, b in zip(policy.model.parameters(), resumed.model.parameters()):
         torch.testing.assert_close(a, b)
+
+
+def _write_demos(h5py, path, observations, actions, names):
+    with h5py.File(path, "w") as f:
+        data = f.create_group("data")
+        data.attrs["policy_vector_names"] = names
+        for i, (obs, act) in enumerate(zip(observations, actions)):
+            demo = data.create_group(f"demo_{i}")
+            demo.create_dataset("actions", data=act)
+            demo.create_group("obs").create_dataset("policy_vector", data=obs)
+
+
+def test_demonstrations_from_several_files_are_their_concatenation(tmp_path):
+    h5py = pytest.importorskip("h5py")
+    from dyq.sim.train import load_demonstrations
+
+    rng = np.random.default_rng(4)
+    observations = [rng.normal(size=(int(rng.integers(5, 12)), 3)).astype(np.float32) for _ in range(5)]
+    actions = [rng.normal(size=(len(o), 7)).astype(np.float32) for o in observations]
+    names = ["a", "b", "c"]
+    _write_demos(h5py, tmp_path / "one.hdf5", observations[:2], actions[:2], names)
+    _write_demos(h5py, tmp_path / "two.hdf5", observations[2:], actions[2:], names)
+    got_obs, got_act, got_names = load_demonstrations([tmp_path / "one.hdf5", tmp_path / "two.hdf5"])
+    assert got_names == names and len(got_obs) == 5
+    for got, want in zip(got_obs + got_act, observations + actions):
+        np.testing.assert_array_equal(got, want)
+    _write_demos(h5py, tmp_path / "other.hdf5", observations[:1], actions[:1], ["a", "b", "x"])
+    with pytest.raises(ValueError, match="data: .*other.hdf5 has observations"):
+        load_demonstrations([tmp_path / "one.hdf5", tmp_path / "other.hdf5"])
+    with pytest.raises(ValueError, match="at least one"):
+        load_demonstrations([])

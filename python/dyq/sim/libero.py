@@ -477,11 +477,25 @@ class PickPlaceExpert:
     yaw_tol = np.radians(8.0)
     close_steps = 10
     release_steps = 8
+    settle_steps = 3
+    settled_change = 0.001
     place_tol = 0.01
 
     def reset(self, env: SuiteEnv) -> None:
         self.phase = "approach"
         self.count = 0
+        self.last_opening = None
+
+    def _fingers_settled(self, obs: dict) -> bool:
+        """The fingers have stopped moving: closing or opening ends on what the policy sees (an opening
+        that no longer changes), not on a step count it cannot see. A count alone leaves the last steps
+        of the wait and the first step after it with one observation, and a cloned policy that learned
+        the wait holds still there forever."""
+        q = obs["robot0_gripper_qpos"]
+        opening = float(q[0] - q[1])
+        previous, self.last_opening = self.last_opening, opening
+        return (self.count >= self.settle_steps and previous is not None
+                and abs(opening - previous) < self.settled_change)
 
     def _move(self, obs: dict, target: np.ndarray, gripper: float, yaw: float | None = None) -> np.ndarray:
         from .experts import move_command  # experts imports envs, which imports this module
@@ -515,13 +529,13 @@ class PickPlaceExpert:
             lift = self.hover * np.clip((xy_err - 2 * self.xy_tol) / (3 * self.xy_tol), 0.0, 1.0)
             target = grasp + [0.0, 0.0, lift]
             if xy_err < self.xy_tol and abs(target[2] - eef[2]) < self.z_tol:
-                self.phase, self.count = "close", 0
+                self.phase, self.count, self.last_opening = "close", 0, None
             elif xy_err > 0.05:
                 self.phase = "approach"
             return self._move(obs, target, open_)
         if self.phase == "close":
             self.count += 1
-            if self.count >= self.close_steps:
+            if self._fingers_settled(obs) or self.count >= self.close_steps:
                 self.phase = "lift"
             return self._move(obs, grasp, close)
         if self.phase == "lift":
@@ -537,11 +551,11 @@ class PickPlaceExpert:
             if np.linalg.norm(to_place) > 3 * self.place_tol:
                 self.phase = "transfer"
             elif abs(eef[2] - place[2]) < self.z_tol:
-                self.phase, self.count = "release", 0
+                self.phase, self.count, self.last_opening = "release", 0, None
             return self._move(obs, np.array([eef[0] + to_place[0], eef[1] + to_place[1], place[2]]), close)
         if self.phase == "release":
             self.count += 1
-            if self.count >= self.release_steps:
+            if self._fingers_settled(obs) or self.count >= self.release_steps:
                 self.phase = "retreat"
             return self._move(obs, eef, open_, finger_yaw(obs))
         return self._move(obs, np.array([eef[0], eef[1], carry_z + 0.05]), open_, finger_yaw(obs))

@@ -29,8 +29,21 @@ CALIBRATION_FILE = "calibration.safetensors"
 CALIBRATION_SAMPLES = 512
 
 
-def load_demonstrations(path: str | Path) -> tuple[list[np.ndarray], list[np.ndarray], list[str]]:
-    """Per-demo observation vectors and clean action labels from a robomimic-layout HDF5 file."""
+def load_demonstrations(path) -> tuple[list[np.ndarray], list[np.ndarray], list[str]]:
+    """Per-demo observation vectors and clean action labels from a robomimic-layout HDF5 file, or from
+    several in order (collections run side by side on disjoint seeds); their observation names must agree."""
+    if not isinstance(path, (str, Path)):
+        paths = list(path)
+        if not paths:
+            raise ValueError("data: give at least one demonstration file")
+        observations, actions, names = load_demonstrations(paths[0])
+        for other in paths[1:]:
+            more_obs, more_act, more_names = load_demonstrations(other)
+            if more_names != names:
+                raise ValueError(f"data: {other} has observations {more_names}, {paths[0]} has {names}")
+            observations += more_obs
+            actions += more_act
+        return observations, actions, names
     import h5py
 
     path = Path(path)
@@ -51,12 +64,20 @@ def load_demonstrations(path: str | Path) -> tuple[list[np.ndarray], list[np.nda
     return observations, actions, observation_names
 
 
-def task_names_of(path: str | Path) -> list[str]:
+def task_names_of(path) -> list[str]:
     """The tasks of a multi-task demonstration file: its ``data`` attr ``task_names`` (a JSON list), or
-    the LIBERO suite's task names where the file names a suite as its task."""
+    the LIBERO suite's task names where the file names a suite as its task. Several files must agree."""
     import h5py
 
     from . import libero
+
+    if not isinstance(path, (str, Path)):
+        paths = list(path)
+        names = [task_names_of(p) for p in paths]
+        for other, other_names in zip(paths[1:], names[1:]):
+            if other_names != names[0]:
+                raise ValueError(f"data: {other} holds tasks {other_names}, {paths[0]} holds {names[0]}")
+        return names[0]
 
     with h5py.File(path, "r") as f:
         names = f["data"].attrs.get("task_names")
@@ -75,12 +96,18 @@ def _lr(step: int, steps: int, peak: float, warmup: int) -> float:
     return peak * (0.1 + 0.9 * 0.5 * (1 + math.cos(math.pi * progress)))
 
 
-def train(task: str, data: str | Path, out: str | Path, *, steps: int = 3000, batch_size: int = 128,
+def train(task: str, data, out: str | Path, *, steps: int = 3000, batch_size: int = 128,
           lr: float = 1e-3, hidden_size: int = 256, intermediate_size: int = 768, layers: int = 4,
           heads: int = 4, seed: int = 0, save_every: int = 250, validation_demos: int = 10,
           observation_names: list[str] | None = None, command: str = "", progress: bool = True) -> TokenPolicy:
-    """Trains (or resumes training of) a policy and saves it under ``out``; returns the policy."""
+    """Trains (or resumes training of) a policy and saves it under ``out``; returns the policy.
+
+    ``data``: one demonstration file or a list of them (their demos in order; the last
+    ``validation_demos`` of the last file are held out)."""
     from tqdm import tqdm
+
+    data = str(data) if isinstance(data, (str, Path)) else [str(p) for p in data]
+    source = data if isinstance(data, str) else ",".join(data)
 
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
@@ -88,7 +115,7 @@ def train(task: str, data: str | Path, out: str | Path, *, steps: int = 3000, ba
     names = observation_names or stored_names or [f"obs_{i}" for i in range(observations[0].shape[1])]
     if len(observations) <= validation_demos:
         raise ValueError(f"need more than validation_demos={validation_demos} demonstrations, "
-                         f"{data} has {len(observations)}")
+                         f"{source} has {len(observations)}")
     # The last demos are held out: validation token accuracy says whether training still helps.
     train_obs = np.concatenate(observations[:-validation_demos]) if validation_demos else np.concatenate(observations)
     train_act = np.concatenate(actions[:-validation_demos]) if validation_demos else np.concatenate(actions)
@@ -105,7 +132,7 @@ def train(task: str, data: str | Path, out: str | Path, *, steps: int = 3000, ba
         observation_tokenizer=BinTokenizer.range_with_margin(binned).to_dict(),
         action_tokenizer=BinTokenizer.percentiles(train_act).to_dict(),
         hidden_size=hidden_size, intermediate_size=intermediate_size, layers=layers, heads=heads,
-        training={"data": str(data), "demos": len(observations) - validation_demos, "samples": len(train_obs),
+        training={"data": source, "demos": len(observations) - validation_demos, "samples": len(train_obs),
                   "steps": steps, "batch_size": batch_size, "lr": lr, "seed": seed, "command": command},
     )
     policy = TokenPolicy(config)
@@ -164,7 +191,7 @@ def train(task: str, data: str | Path, out: str | Path, *, steps: int = 3000, ba
     policy.save(out)
     save_calibration_set(out, train_obs, train_act, seed)
     train_demos = actions[:-validation_demos] if validation_demos else actions
-    dispatch_budget.save(out, *dispatch_budget.budget_dispatch(train_demos), source=str(data))
+    dispatch_budget.save(out, *dispatch_budget.budget_dispatch(train_demos), source=source)
     return policy
 
 
@@ -194,8 +221,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     from ..apps.usage import input_file, nonnegative_int, output_dir, positive_float, positive_int
 
     parser.add_argument("task", help="task name (lift, pick_place_can, square, libero_object, libero_spatial)")
-    parser.add_argument("--data", required=True, type=input_file(".hdf5", ".h5"),
-                        help="demonstrations (HDF5, robomimic layout) from `dyq collect`")
+    parser.add_argument("--data", required=True, type=input_file(".hdf5", ".h5"), nargs="+",
+                        help="demonstrations (HDF5, robomimic layout) from `dyq collect`: one file or several")
     parser.add_argument("--out", required=True, type=output_dir, help="output folder for the checkpoint")
     parser.add_argument("--steps", type=positive_int, default=3000)
     parser.add_argument("--batch-size", type=positive_int, default=128)
@@ -216,7 +243,8 @@ def main(args: argparse.Namespace) -> int:
     if args.threads:
         torch.set_num_threads(args.threads)
     command = "dyq train " + " ".join(shlex.quote(a) for a in sys.argv[2:]) if len(sys.argv) > 2 else ""
-    policy = train(args.task, args.data, args.out, steps=args.steps, batch_size=args.batch_size, lr=args.lr,
+    data = args.data[0] if len(args.data) == 1 else args.data
+    policy = train(args.task, data, args.out, steps=args.steps, batch_size=args.batch_size, lr=args.lr,
                    hidden_size=args.hidden_size, intermediate_size=args.intermediate_size, layers=args.layers,
                    heads=args.heads, seed=args.seed, save_every=args.save_every,
                    validation_demos=args.validation_demos, command=command,
