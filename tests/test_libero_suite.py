@@ -222,3 +222,15 @@ def test_the_expert_lifts_when_the_fingers_have_settled(openings, lifts_at):
         if expert.phase == "lift":
             break
     assert (step, expert.phase) == (lifts_at, "lift")
+
+
+def test_the_policy_sees_whether_the_fingers_still_move():
+    # dyq_opening_change: the opening minus the previous observation's, 0 right after a reset; the
+    # settled-fingers rule of the expert is a function of it.
+    env = object.__new__(libero.SuiteEnv)
+    env._opening = None
+    openings = [0.079, 0.074, 0.0472, 0.0471]
+    changes = [env._with_opening_change(_closing_obs(o))["dyq_opening_change"] for o in openings]
+    np.testing.assert_allclose(changes, [0.0, -0.005, 0.0472 - 0.074, -0.0001], atol=1e-12)
+    names = libero.OBSERVATION_NAMES
+    assert names[names.index("gripper_opening") + 1] == "gripper_opening_change"

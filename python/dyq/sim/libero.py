@@ -274,6 +274,7 @@ class SuiteEnv:
         self._init_states: dict[int, np.ndarray] = {}
         self.task_index = -1
         self.env = None
+        self._opening = None  # the gripper's opening at the last observation (for dyq_opening_change)
 
     # -- the LIBERO environment of a task --------------------------------------------------------------
     def _task_env(self, index: int):
@@ -359,7 +360,8 @@ class SuiteEnv:
                                self._robot_base())
         self._plan_transport()
         self.steps = 0
-        return self._augment(obs)
+        self._opening = None
+        return self._augment(self._with_opening_change(obs))
 
     def _robot_base(self) -> np.ndarray:
         return self.sim.data.body_xpos[self.sim.model.body_name2id(self.env.env.robots[0].robot_model.root_body)]
@@ -411,6 +413,16 @@ class SuiteEnv:
     def _raw_observation(self) -> dict:
         return dict(self.env.env._get_observations(force_update=True))
 
+    def _with_opening_change(self, obs: dict) -> dict:
+        """``dyq_opening_change``: the gripper's opening minus the previous step's (0 after a reset). The
+        expert ends its waits when the fingers stop moving, so the policy must see whether they still move:
+        from the opening alone, the last step of a wait and the first step after it look the same."""
+        q = obs["robot0_gripper_qpos"]
+        opening = float(q[0] - q[1])
+        obs["dyq_opening_change"] = 0.0 if self._opening is None else opening - self._opening
+        self._opening = opening
+        return obs
+
     def _augment(self, obs: dict) -> dict:
         sim = self.sim
         b = self.body(self.target)
@@ -434,14 +446,14 @@ class SuiteEnv:
     def step(self, action: np.ndarray) -> tuple[dict, float, bool, dict]:
         _, reward, done, info = self.env.step(np.asarray(action, dtype=np.float64))
         self.steps += 1
-        return self._augment(self._raw_observation()), reward, done, info
+        return self._augment(self._with_opening_change(self._raw_observation())), reward, done, info
 
     def check_success(self) -> bool:
         return bool(self.env.check_success())
 
 
 OBSERVATION_NAMES = ["task_index", "eef_x", "eef_y", "eef_z", "finger_yaw_sin", "finger_yaw_cos", "eef_down_x",
-                     "eef_down_y", "gripper_opening", "grasp_x", "grasp_y", "grasp_z", "grasp_dx", "grasp_dy",
+                     "eef_down_y", "gripper_opening", "gripper_opening_change", "grasp_x", "grasp_y", "grasp_z", "grasp_dx", "grasp_dy",
                      "grasp_dz", "yaw_error", "place_dx", "place_dy", "place_dz", "carry_dz"]
 
 
@@ -454,7 +466,8 @@ def observation_vector(obs: dict) -> np.ndarray:
     q = obs["robot0_gripper_qpos"]
     grasp = np.asarray(obs["dyq_grasp"])
     place = np.asarray(obs["dyq_place"])
-    parts = [[obs["dyq_task_index"]], eef, [np.sin(yaw), np.cos(yaw)], down[:2], [q[0] - q[1]], grasp, grasp - eef,
+    parts = [[obs["dyq_task_index"]], eef, [np.sin(yaw), np.cos(yaw)], down[:2], [q[0] - q[1]],
+             [obs["dyq_opening_change"]], grasp, grasp - eef,
              [obs["dyq_grasp_yaw"] - yaw], place - grasp, [obs["dyq_carry_z"] - grasp[2]]]
     return np.concatenate([np.asarray(p, dtype=np.float64).ravel() for p in parts]).astype(np.float32)
 
