@@ -250,3 +250,24 @@ def test_smoothquant_configuration_calibrates_on_training_data(policy, env):
     assert not torch.equal(a.scales, b.scales)
     with pytest.raises(ValueError, match="calibration data"):
         PolicyRunner(policy).quantized_policy("smoothquant")
+
+
+@pytest.mark.parametrize("method", ["mse", "awq"])
+def test_weight_method_configurations_share_one_weight_set(policy, env, method):
+    rng = np.random.default_rng(6)
+    first = envs.observation_vector(TASK, envs.reset_env(env, 0))
+    calibration = (first + rng.normal(scale=0.05, size=(32, first.shape[0])), rng.uniform(-1, 1, size=(32, 7)))
+    runner = PolicyRunner(policy, calibration)
+    episode = run_episode(runner, TASK, f"{method}_w4a2", seed=1, env=env)
+    assert set(episode.bits) == {2}
+    assert_kernels_ran_the_published_widths(episode.to_dict())
+    # The static rows and DyQ of one method run the very same INT4 model; its scales are not rtn's.
+    assert runner.policy_for(run_config(f"{method}_w4a8")) is runner.policy_for(run_config(f"{method}_dyq"))
+    a = runner.quantized_policy(method).model.model.layers[0].mlp.down_proj
+    b = runner.quantized_policy("rtn").model.model.layers[0].mlp.down_proj
+    assert not torch.equal(a.scales, b.scales)
+    if method == "awq":
+        with pytest.raises(ValueError, match="calibration data"):
+            PolicyRunner(policy).quantized_policy("awq")
+    with pytest.raises(ValueError, match="weights must be one of"):
+        runner.quantized_policy("gptq")

@@ -14,7 +14,11 @@ A **configuration** says how the policy runs (:data:`CONFIGS`):
   motion gets low widths); ``random_schedule`` (per step, a width drawn independently with the shares
   DyQ had on the same seed) and ``random_runs`` (DyQ's own runs of equal width on that seed in shuffled
   order: the run lengths kept, the timing lost). A schedule's prefill runs at the previous step's
-  width, as DyQ's does.
+  width, as DyQ's does;
+* the same static widths and DyQ on INT4 weights chosen by another method of ``dyq.quantize_model``
+  (docs/quantization.md): ``mse_w4a16`` .. ``mse_w4a2`` and ``mse_dyq`` (per-group clipping search),
+  ``awq_w4a16`` .. ``awq_w4a2`` and ``awq_dyq`` (activation-aware scales calibrated on the checkpoint's
+  training sample, for all widths together). Each method makes one weight set, which serves all its rows.
 
 DyQ in the loop, per control step t (paper Algorithm 1 and Sec. V-B):
 
@@ -55,6 +59,10 @@ from .policy import TokenPolicy
 
 GROUP_SIZE = 128
 SMOOTHQUANT_ALPHA = 0.5  # SmoothQuant's default migration strength
+# How a configuration's INT4 weights are chosen: a dyq.quantize_model method, or round-to-nearest after
+# SmoothQuant smoothing. "awq" and "smoothquant" calibrate on the checkpoint's training sample.
+WEIGHT_METHODS = ("mse", "awq")
+WEIGHTS = ("rtn", "smoothquant") + WEIGHT_METHODS
 
 
 @dataclasses.dataclass(frozen=True)
@@ -65,7 +73,7 @@ class RunConfig:
     kind: str  # "float", "static", "dyq" or "schedule"
     bits: int | None = None  # the fixed width of a "static" configuration
     dispatch: dict = dataclasses.field(default_factory=dict)  # DispatchConfig.replace overrides for "dyq"
-    weights: str = "rtn"  # "rtn" (round to nearest) or "smoothquant"
+    weights: str = "rtn"  # one of WEIGHTS: how the INT4 weights are chosen
     inverted: bool = False  # "dyq" with the ladder reversed
     schedule: str | None = None  # "shares" or "runs": a "schedule" drawn from DyQ's episode on the seed
     source: str = ""  # the file the dispatch overrides came from (``dyq_calibrated``)
@@ -91,6 +99,11 @@ CONFIGS: dict[str, RunConfig] = {c.name: c for c in (
     RunConfig("random_schedule", "schedule", schedule="shares"),
     RunConfig("random_runs", "schedule", schedule="runs"),
 )}
+# The static widths and DyQ again on each other weight method's one weight set.
+CONFIGS.update({c.name: c for method in WEIGHT_METHODS for c in (
+    *(RunConfig(f"{method}_w4a{bits}", "static", bits, weights=method) for bits in (16, 8, 4, 2)),
+    RunConfig(f"{method}_dyq", "dyq", weights=method),
+)})
 
 
 class InvertedLadderDispatcher(dyq.KinematicDispatcher):
@@ -161,7 +174,7 @@ class PolicyRunner:
     """The policy of one checkpoint in every configuration: the float model and its INT4 copies, one per
     weight method (built once per process on first use), all bound to one precision flag.
 
-    ``calibration``: training observations and actions for methods that calibrate (SmoothQuant);
+    ``calibration``: training observations and actions for methods that calibrate (SmoothQuant, AWQ);
     :meth:`load` takes the sample that ``dyq train`` saved beside the checkpoint.
     """
 
@@ -189,25 +202,32 @@ class PolicyRunner:
     def quantized_policy(self, weights: str) -> TokenPolicy:
         if weights in self._quantized:
             return self._quantized[weights]
+        if weights not in WEIGHTS:
+            raise ValueError(f"weights must be one of {WEIGHTS}, got {weights!r}")
         policy = self.float_policy.copy()
+        method = weights if weights in WEIGHT_METHODS else "rtn"
         if weights == "smoothquant":
             self._smooth(policy)
-        elif weights != "rtn":
-            raise ValueError(f"weights must be 'rtn' or 'smoothquant', got {weights!r}")
-        report = dyq.quantize_model(policy.model, group_size=GROUP_SIZE, flag=self.flag)
+        calibration = self._calibration_ids(policy, weights) if method == "awq" else None
+        report = dyq.quantize_model(policy.model, group_size=GROUP_SIZE, flag=self.flag, method=method,
+                                    calibration=calibration)
         if any(name != "lm_head" for name in report.skipped):
             raise ValueError(f"the policy has layers dyq cannot convert: {report.skipped}")
         self.reports[weights] = report
         self._quantized[weights] = policy
         return policy
 
+    def _calibration_ids(self, policy: TokenPolicy, weights: str) -> torch.Tensor:
+        """Token ids of the calibration sample's whole steps (prompt and the expert's action tokens)."""
+        if self.calibration is None:
+            raise ValueError(f"weights={weights!r} needs calibration data: a checkpoint saved by dyq train, or "
+                             "PolicyRunner(policy, calibration=(observations, actions))")
+        return policy.sequences(*self.calibration)[0]
+
     def _smooth(self, policy: TokenPolicy) -> None:
         from ..smoothing import activation_maxima, smooth_llama
 
-        if self.calibration is None:
-            raise ValueError("SmoothQuant needs calibration data: a checkpoint saved by dyq train, or "
-                             "PolicyRunner(policy, calibration=(observations, actions))")
-        ids, _ = policy.sequences(*self.calibration)
+        ids = self._calibration_ids(policy, "smoothquant")
         with torch.no_grad():
             maxima = activation_maxima(policy.model, lambda: policy.model(input_ids=ids))
             smooth_llama(policy.model, maxima, alpha=SMOOTHQUANT_ALPHA)
