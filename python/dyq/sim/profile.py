@@ -23,6 +23,7 @@ whose low-width action equals the reference's (e_t = 0) changes nothing downstre
 
 **Seeds.** Profiling and calibration use :data:`CALIBRATION_SEEDS` (5000..5999), disjoint from the
 evaluation seeds (0..999) and the demonstrations' (100000+): the first seeds whose reference succeeds.
+On a LIBERO suite these are perturbed initial states (every seed from 500 on is), ten per task in turn.
 
 **Cache.** ``.cache/profile/<task>/<checkpoint digest>/`` holds one gzipped JSON per seed under
 ``reference/``, ``teacher/`` (teacher-forced errors), ``perturb/w<bits>/`` (rewritten after every
@@ -111,6 +112,9 @@ PROFILE_BUDGETS = {
     "lift": ProfileBudget(episodes=8, widths=(4, 2), strides=(1, 4)),
     "pick_place_can": ProfileBudget(episodes=3, widths=(4,), strides=(2,)),
     "square": ProfileBudget(episodes=3, widths=(4,), strides=(2,)),
+    # LIBERO (in its own environment): ~120-step episodes on a slower scene, so every third step.
+    "libero_object": ProfileBudget(episodes=3, widths=(4,), strides=(3,)),
+    "libero_spatial": ProfileBudget(episodes=3, widths=(4,), strides=(3,)),
 }
 CALIBRATION_EPISODES = 20
 # theta_fp sweep (Figure 7): these quantiles of the calibration steps' S_t.
@@ -644,7 +648,7 @@ _thetas = _list_type(float, lambda v: math.isfinite(v) and v >= 0, "comma-separa
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     command = _command(parser)
-    parser.add_argument("task", choices=sorted(envs.TASKS))
+    parser.add_argument("task", choices=envs.ALL_TASKS)
     parser.add_argument("--checkpoint", type=usage.input_dir,
                         help="policy checkpoint (default: the one that ships with dyq)")
     parser.add_argument("--cache", type=usage.output_dir, default=DEFAULT_CACHE)
