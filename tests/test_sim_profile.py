@@ -221,3 +221,10 @@ def test_missing_inputs_are_reported(checkpoint, tmp_path, capsys, monkeypatch):
     assert "run `dyq profile lift` first" in error(["calibrate", TASK, "--checkpoint", str(checkpoint)])
     with pytest.raises(FileNotFoundError, match="run `dyq calibrate lift` first"):
         prof.calibrated_run_config(TASK, tmp_path / "none.json")
+
+
+def test_every_task_the_commands_take_has_a_profile_budget():
+    # `dyq profile` and `dyq calibrate` take every task, the LIBERO suites included: each needs a budget.
+    assert set(prof.PROFILE_BUDGETS) == set(envs.ALL_TASKS)
+    for task, budget in prof.PROFILE_BUDGETS.items():
+        assert budget.episodes >= 1 and all(width in prof.QUANTIZED_WIDTHS for width in budget.widths), task
