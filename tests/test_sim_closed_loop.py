@@ -271,3 +271,10 @@ def test_weight_method_configurations_share_one_weight_set(policy, env, method):
             PolicyRunner(policy).quantized_policy("awq")
     with pytest.raises(ValueError, match="weights must be one of"):
         runner.quantized_policy("gptq")
+
+
+def test_every_weight_method_is_compared_against_round_to_nearest():
+    from dyq.sim import rollout
+
+    assert evaluate.WEIGHT_METHODS == rollout.WEIGHT_METHODS
+    assert {(f"{m}_w4a2", "w4a2") for m in rollout.WEIGHT_METHODS} <= set(evaluate.COMPARISONS)

@@ -34,11 +34,14 @@ DEFAULT_OUT = Path("bench/results/closed_loop.json")
 DEFAULT_TABLE = Path("docs/closed_loop.md")
 DEFAULT_CACHE = Path(".cache/closed_loop")
 WIDTHS = (2, 4, 8, 16)
+# The weight methods the closed loop runs besides round-to-nearest (rollout.WEIGHT_METHODS, named here so
+# that summarizing needs no torch).
+WEIGHT_METHODS = ("mse", "awq")
 # Paired comparisons reported for every task: (configuration, against).
 COMPARISONS = (("dyq", "fp32"), ("dyq", "w4a16"), ("dyq", "w4a2"), ("dyq", "random_schedule"),
                ("dyq", "random_runs"), ("dyq_inverted", "dyq"), ("dyq_calibrated", "fp32"), ("dyq_calibrated", "dyq"),
-               # Another weight method against round-to-nearest at the same width (issue: quantization quality).
-               *((f"{method}_{config}", config) for method in ("mse", "awq") for config in ("w4a4", "w4a2", "dyq")))
+               # Another weight method against round-to-nearest at the same width.
+               *((f"{method}_{config}", config) for method in WEIGHT_METHODS for config in ("w4a4", "w4a2", "dyq")))
 # The target of the closed loop (paper Table I's claim): DyQ keeps this share of fp32's success ...
 TARGET_RETENTION = 0.995
 # ... with at least this share of its control steps below 8 bits.

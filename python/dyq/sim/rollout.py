@@ -61,7 +61,7 @@ GROUP_SIZE = 128
 SMOOTHQUANT_ALPHA = 0.5  # SmoothQuant's default migration strength
 # How a configuration's INT4 weights are chosen: a dyq.quantize_model method, or round-to-nearest after
 # SmoothQuant smoothing. "awq" and "smoothquant" calibrate on the checkpoint's training sample.
-WEIGHT_METHODS = ("mse", "awq")
+WEIGHT_METHODS = tuple(m for m in dyq.core.weight_methods.METHODS if m != "rtn")
 WEIGHTS = ("rtn", "smoothquant") + WEIGHT_METHODS
 
 
