@@ -24,6 +24,22 @@ def test_seeds_cover_the_official_states_then_perturbed_ones():
         libero.task_of_seed(-1)
 
 
+def test_collecting_chosen_tasks_takes_only_their_seeds_in_order():
+    from dyq.sim.demos import _seeds
+
+    seed0 = envs.DEMO_SEED0 + 3
+    chosen = _seeds("libero_spatial", seed0, [4, 5, 7])
+    seeds = [chosen(i) for i in range(9)]
+    expected = [s for s in range(seed0, seed0 + 40) if s % 10 in (4, 5, 7)][:9]
+    assert seeds == expected and len(set(seeds)) == 9
+    assert [libero.task_of_seed(s)[0] for s in seeds[:3]] == [4, 5, 7]
+    assert _seeds("libero_spatial", seed0, None)(5) == seed0 + 5
+    with pytest.raises(ValueError, match="task_indices"):
+        _seeds("libero_spatial", seed0, [10])
+    with pytest.raises(ValueError, match="task_indices"):
+        _seeds("lift", seed0, [1])
+
+
 def test_suites_are_tasks():
     for suite in libero.SUITES:
         assert envs.spec(suite).horizon == libero.SUITES[suite].horizon
@@ -160,6 +176,29 @@ def test_one_expert_episode_succeeds(suite):
             break
     env.close()
     assert success
+
+
+@pytest.mark.skipif(not HAS_LIBERO, reason="the libero extra is not installed (scripts/setup_libero.sh)")
+def test_a_perturbed_bowl_on_the_ramekin_stays_on_it():
+    """LIBERO-Spatial task 5 starts with the bowl on the ramekin; a perturbed state moves the two together
+    (moved apart, the bowl would slide off and the scene would not be the task's any more)."""
+    env = envs.make_env("libero_spatial")
+    layouts = []
+    for seed in (5, envs.DEMO_SEED0 + 5, envs.DEMO_SEED0 + 15, envs.DEMO_SEED0 + 25):
+        envs.reset_env(env, seed)
+        bowl = footprint_of(env, env.target)
+        ramekin = footprint_of(env, next(n for n in env._movable() if "ramekin" in n))
+        layouts.append((bowl.bottom - ramekin.top, np.linalg.norm(bowl.centre - ramekin.centre), bowl.centre))
+    env.close()
+    (lean, apart, start), perturbed = layouts[0], layouts[1:]
+    assert abs(lean) < 0.02  # the official state: the bowl rests on the ramekin
+    for lean_p, apart_p, centre in perturbed:
+        assert abs(lean_p - lean) < 0.01 and abs(apart_p - apart) < 0.01, (lean_p, apart_p)
+    assert max(np.linalg.norm(c - start) for _, _, c in perturbed) > 0.005  # and the pair did move
+
+
+def footprint_of(env, name):
+    return libero.footprint(env.sim, env.body(name))
 
 
 def test_suite_rows_count_per_task_and_quote_the_paper(tmp_path):

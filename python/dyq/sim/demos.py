@@ -100,19 +100,23 @@ def _write_demo(group, demo: dict) -> None:
 
 def collect(task: str, n_demos: int, out_path, seed0: int = envs.DEMO_SEED0, noise: float | None = None,
             keep_failures: bool = False, max_attempts: int | None = None, progress: bool = True,
-            resume: bool = False) -> dict:
+            resume: bool = False, task_indices: list[int] | None = None) -> dict:
     """Run the expert on seeds ``seed0, seed0 + 1, ...`` until ``n_demos`` episodes are kept (successful
     ones only, unless ``keep_failures``), writing them to ``out_path``. Gives up after ``max_attempts``
     (default 3 * n_demos + 10). Returns a summary: attempts, kept, successes, steps of the kept demos, and
     per task index the successes and attempts (the LIBERO suites' ten tasks).
 
     The file is flushed after every demo with its running totals, so an interrupted collection keeps what
-    it wrote; ``resume`` continues such a file (same task, noise and first seed) where it stopped."""
+    it wrote; ``resume`` continues such a file (same task, noise and first seed) where it stopped.
+
+    ``task_indices`` (the LIBERO suites) keeps only the seeds of those tasks, to collect more of the tasks
+    the expert or the policy finds hard."""
     import h5py
     from tqdm import tqdm
 
     noise = DEFAULT_NOISE[task] if noise is None else float(noise)
     max_attempts = 3 * n_demos + 10 if max_attempts is None else max_attempts
+    seeds = _seeds(task, seed0, task_indices)
     out_path = Path(out_path)
     out_path.parent.mkdir(parents=True, exist_ok=True)
     if resume and not out_path.is_file():
@@ -121,9 +125,11 @@ def collect(task: str, n_demos: int, out_path, seed0: int = envs.DEMO_SEED0, noi
         if resume:
             data = f["data"]
             stored = {k: data.attrs.get(k) for k in ("task", "noise", "seed0")}
-            if (str(stored["task"]), float(stored["noise"]), int(stored["seed0"])) != (task, noise, seed0):
+            stored["task_indices"] = json.loads(data.attrs.get("task_indices", "null"))
+            if (str(stored["task"]), float(stored["noise"]), int(stored["seed0"]), stored["task_indices"]) != (
+                    task, noise, seed0, _indices_attr(task_indices)):
                 raise ValueError(f"{out_path} was collected with {stored}, not task={task!r}, noise={noise}, "
-                                 f"seed0={seed0}: collect into another file")
+                                 f"seed0={seed0}, task_indices={task_indices}: collect into another file")
             per_task = {int(k): v for k, v in json.loads(data.attrs["per_task_success"]).items()}
             attempts = int(data.attrs["attempts"])
             successes = int(data.attrs.get("successes", sum(s for s, _ in per_task.values())))
@@ -133,7 +139,7 @@ def collect(task: str, n_demos: int, out_path, seed0: int = envs.DEMO_SEED0, noi
         else:
             data = f.create_group("data")
             data.attrs["env_args"] = json.dumps(envs.env_args(task))
-            data.attrs.update(task=task, noise=noise, seed0=seed0)
+            data.attrs.update(task=task, noise=noise, seed0=seed0, task_indices=json.dumps(_indices_attr(task_indices)))
             if envs.libero.is_suite(task):
                 data.attrs["task_names"] = json.dumps(envs.libero.task_names(task))
             attempts = successes = 0
@@ -143,7 +149,7 @@ def collect(task: str, n_demos: int, out_path, seed0: int = envs.DEMO_SEED0, noi
         expert = experts.make_expert(task)
         bar = tqdm(total=n_demos, initial=len(steps), desc=f"collect {task}", disable=not progress)
         while len(steps) < n_demos and attempts < max_attempts:
-            demo = run_episode(env, expert, task, seed0 + attempts, noise)
+            demo = run_episode(env, expert, task, seeds(attempts), noise)
             attempts += 1
             successes += demo["success"]
             tally = per_task.setdefault(int(demo["task_index"]), [0, 0])
@@ -161,6 +167,27 @@ def collect(task: str, n_demos: int, out_path, seed0: int = envs.DEMO_SEED0, noi
     env.close()
     return {"task": task, "path": str(out_path), "noise": noise, "attempts": attempts, "successes": successes,
             "kept": len(steps), "steps": steps, "per_task": dict(sorted(per_task.items()))}
+
+
+def _indices_attr(task_indices):
+    return None if task_indices is None else sorted(int(i) for i in task_indices)
+
+
+def _seeds(task: str, seed0: int, task_indices):
+    """The seed of attempt ``i``: ``seed0 + i``, or the ``i``-th seed from ``seed0`` on whose task index
+    is one of ``task_indices``."""
+    if task_indices is None:
+        return lambda i: seed0 + i
+    if not envs.libero.is_suite(task):
+        raise ValueError(f"task_indices selects tasks of a LIBERO suite; {task!r} is one task")
+    count = len(envs.libero.task_names(task))
+    bad = [i for i in task_indices if not 0 <= int(i) < count]
+    if bad or not task_indices:
+        raise ValueError(f"task_indices must be task indices 0..{count - 1} of {task}, got {list(task_indices)}")
+    wanted = set(int(i) for i in task_indices)
+    period = envs.libero.TASKS_PER_SUITE  # the task index is the seed modulo this
+    chosen = [s for s in range(seed0, seed0 + period) if envs.libero.task_of_seed(s)[0] in wanted]
+    return lambda i: chosen[i % len(chosen)] + period * (i // len(chosen))
 
 
 def load(path) -> list[dict]:
@@ -192,6 +219,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--seed0", type=int, default=envs.DEMO_SEED0,
                         help="first seed; keep demo seeds out of the evaluation range 0..999")
     parser.add_argument("--keep-failures", action="store_true", help="store failed episodes too")
+    parser.add_argument("--task-indices", type=int, nargs="+", default=None,
+                        help="LIBERO suites: collect only these task indices (e.g. the ones the policy fails)")
     parser.add_argument("--resume", action="store_true",
                         help="continue an interrupted collection in --out (same task, noise and seed0)")
 
@@ -201,7 +230,7 @@ def main(args: argparse.Namespace) -> int:
     asked for were kept."""
     out = args.out or Path("demos") / f"{args.task}.hdf5"
     summary = collect(args.task, args.demos, out, seed0=args.seed0, noise=args.noise,
-                      keep_failures=args.keep_failures, resume=args.resume)
+                      keep_failures=args.keep_failures, resume=args.resume, task_indices=args.task_indices)
     steps = np.asarray(summary["steps"])
     print(f"{summary['task']}: {summary['successes']}/{summary['attempts']} attempts succeeded "
           f"({summary['successes'] / max(summary['attempts'], 1):.1%}) at noise {summary['noise']}; "

@@ -316,33 +316,68 @@ class SuiteEnv:
     def _movable(self) -> list[str]:
         return [n for n in self.env.env.objects_dict]
 
+    def _supports(self, names: list[str]) -> dict[str, str]:
+        """Which movable object each movable object rests on, if any (the bowl on the ramekin or on the
+        cookie box): the two footprints overlapping, its bottom above the other's top by up to 15 cm
+        (LIBERO's stored states hold such an object in the air over its support; it drops during the
+        settling steps, the bowl onto the ramekin's rim). A bowl beside the plate, whose square footprint
+        touches the plate's, stands lower than the plate's top and is not on it."""
+        prints = {n: footprint(self.sim, self.body(n)) for n in names}
+        supports = {}
+        for name, fp in prints.items():
+            below = [(other, p) for other, p in prints.items() if other != name
+                     and 0.0 < fp.bottom - p.top < 0.15 and _boxes_overlap(fp.corners(), p.corners()) > 0.005]
+            if below:
+                supports[name] = max(below, key=lambda item: item[1].top)[0]
+        return supports
+
     def _perturb(self, rng: np.random.Generator) -> None:
         """Shift and turn every movable object (free joint) a little; retried until no two footprints
-        overlap more than they did in the official state."""
+        overlap more than they did in the official state. An object resting on another one moves with it,
+        rigidly about the support's centre, so that a bowl on a ramekin stays on it: moved on its own, it
+        would slide off and the perturbed scenes would no longer show the task's layout."""
         sim = self.sim
         names = [n for n in self._movable() if self.env.env.get_object(n).joints]
+        supports = self._supports(names)
+
+        def root(name: str) -> str:
+            while name in supports:
+                name = supports[name]
+            return name
+
         base = sim.get_state()
         for _ in range(20):
             sim.set_state(base)
+            moves = {n: (rng.uniform(-PERTURB_XY, PERTURB_XY, 2), rng.uniform(-PERTURB_YAW, PERTURB_YAW))
+                     for n in names}
+            centres = {n: sim.data.qpos[self._qpos_addr(n): self._qpos_addr(n) + 2].copy() for n in names}
             for name in names:
-                joint = self.env.env.get_object(name).joints[-1]
-                addr = sim.model.get_joint_qpos_addr(joint)
-                qpos = sim.data.qpos[addr[0]: addr[0] + 7].copy()
-                qpos[:2] += rng.uniform(-PERTURB_XY, PERTURB_XY, 2)
-                turn = rng.uniform(-PERTURB_YAW, PERTURB_YAW)
+                anchor = root(name)
+                shift, turn = moves[anchor]
+                addr = self._qpos_addr(name)
+                qpos = sim.data.qpos[addr: addr + 7].copy()
+                c, s = np.cos(turn), np.sin(turn)
+                arm = qpos[:2] - centres[anchor]
+                qpos[:2] = centres[anchor] + np.array([c * arm[0] - s * arm[1], s * arm[0] + c * arm[1]]) + shift
                 w, x, y, z = qpos[3:7]  # MuJoCo's wxyz
                 c, s = np.cos(turn / 2), np.sin(turn / 2)  # q_turn (about world z) * q
                 qpos[3:7] = [c * w - s * z, c * x - s * y, c * y + s * x, c * z + s * w]
-                sim.data.qpos[addr[0]: addr[0] + 7] = qpos
+                sim.data.qpos[addr: addr + 7] = qpos
             sim.forward()
-            prints = [footprint(sim, self.body(n)) for n in names]
-            overlap = max((_boxes_overlap(a.corners(), b.corners())
-                           for i, a in enumerate(prints) for b in prints[i + 1:]
-                           if min(a.top, b.top) > max(a.bottom, b.bottom)), default=-1.0)
+            prints = {n: footprint(sim, self.body(n)) for n in names}
+            overlap = max((_boxes_overlap(prints[a].corners(), prints[b].corners())
+                           for i, a in enumerate(names) for b in names[i + 1:]
+                           if root(a) != root(b)
+                           and min(prints[a].top, prints[b].top) > max(prints[a].bottom, prints[b].bottom)),
+                          default=-1.0)
             if overlap < 0.0:
                 return
         sim.set_state(base)  # no clean draw: keep the official state
         sim.forward()
+
+    def _qpos_addr(self, name: str) -> int:
+        joint = self.env.env.get_object(name).joints[-1]
+        return int(self.sim.model.get_joint_qpos_addr(joint)[0])
 
     def reset(self, seed: int) -> dict:
         index, state, perturbed = task_of_seed(int(seed))
