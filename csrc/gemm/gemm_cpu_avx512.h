@@ -142,43 +142,174 @@ inline void split_weight_nibbles(__m512i packed, __m512i& even, __m512i& odd) {
   odd = _mm512_shuffle_epi8(nibble_values, _mm512_and_si512(_mm512_srli_epi16(packed, 4), low_nibbles));
 }
 
-// sums[r] = y[r] (without bias) for one weight row and kRows quantized activation rows.
-template <int kRows>
-void quantized_row_kernel(const uint8_t* weight_row, const float* scales_row, int64_t k, int group_size,
-                          const QuantizedBlock* const* rows, float* sums) {
-  const int64_t full_blocks = k / kBlockColumns;
-  const int64_t tail_columns = k % kBlockColumns;
-  const int64_t groups_per_block = kBlockColumns / group_size;
-  const __m512i ones = _mm512_set1_epi8(1);
+// ---- row kernels for few activation rows (decode) ------------------------------------------------
+//
+// With one to seven activation rows the work is a stream over the packed weights, so the row kernels
+// spend as few instructions as they can on each 64-byte load of a weight row. They read the codes
+// offset by 8, u = q_w + 8 = nibble XOR 8 in [0, 15], which needs no sign-extending lookup: one XOR for
+// the whole load, then a mask and a shift split it into the even and the odd columns. The offset comes
+// back as a per-group term of the activations alone, -8 * sum(q_x - z_x) for the integer widths and
+// -24 * sum(x) for bf16 (below), folded in once per output with the weight scales; every integer sum is
+// still exact, so P is the P of docs/numerics.md bit for bit.
+// - act_bits 2/4: the activations are stored as a = q_x - z_x (|a| <= 15, an s8), and one vpdpbusd
+//   (u8 u times s8 a) per half gives sum(a * u) per lane of 8 columns.
+// - act_bits 8: q_x needs the u8 operand, so u takes the s8 one (it is below 16): sum(q_x * u), minus
+//   z_x * sum(u) from one more vpdpbusd with z_x in every byte of the lane.
+// Per weight row the products s_w * s_x of every group are formed once, 16 groups per instruction, and
+// so is the offset term; inside the loop a lane's partial sum is converted and multiplied by its group's
+// product.
+
+// 128 columns of one activation row for the integer row kernel.
+struct alignas(64) DecodeBlock {
+  uint8_t even_codes[64];   // columns 0, 2, ..., 126: a = q_x - z_x (act_bits 2/4, as s8) or q_x (8)
+  uint8_t odd_codes[64];    // columns 1, 3, ..., 127
+  uint32_t zero_bytes[16];  // act_bits 8: z_x of the lane's group in each byte (0 past k)
+};
+
+// An activation row as the integer row kernel reads it.
+struct DecodeRow {
+  const DecodeBlock* blocks;
+  const float* scales;   // s_x per group (NaN for a non-finite group)
+  const float* offsets;  // -8 * sum over the group of (q_x - z_x), exact in fp32
+};
+
+struct DecodeActivations {
+  AlignedVector<DecodeBlock> blocks;  // [m][ceil(k / 128)]
+  std::vector<float> scales, offsets;  // [m][groups]
+  int64_t blocks_per_row = 0, groups = 0;
+  DecodeRow row(int64_t r) const {
+    return {blocks.data() + r * blocks_per_row, scales.data() + r * groups, offsets.data() + r * groups};
+  }
+};
+
+template <typename Element>
+DecodeActivations decode_activations(const Element* x, int64_t m, int64_t k, int group_size, int act_bits) {
+  DecodeActivations out;
+  out.blocks_per_row = (k + kBlockColumns - 1) / kBlockColumns;
+  out.groups = group_count(k, group_size);
+  out.blocks.resize(m * out.blocks_per_row);
+  out.scales.resize(m * out.groups);
+  out.offsets.resize(m * out.groups);
+  const bool centred = act_bits != 8;
+  std::vector<float> row(k);
+  std::vector<uint8_t> codes(out.blocks_per_row * kBlockColumns, 0);
+  std::vector<ActivationGroupParams> params(out.groups);
+  for (int64_t r = 0; r < m; ++r) {
+    quantize_activation_row(x + r * k, k, group_size, act_bits, row.data(), codes.data(), params.data());
+    float* offsets = out.offsets.data() + r * out.groups;
+    for (int64_t g = 0; g < out.groups; ++g) {
+      out.scales[r * out.groups + g] = params[g].scale;
+      int64_t sum = 0;
+      for (int64_t c = g * group_size; c < g * group_size + group_columns(k, group_size, g); ++c) {
+        sum += static_cast<int64_t>(codes[c]) - params[g].zero;
+      }
+      offsets[g] = -8.0f * static_cast<float>(sum);
+    }
+    for (int64_t t = 0; t < out.blocks_per_row; ++t) {
+      DecodeBlock& block = out.blocks[r * out.blocks_per_row + t];
+      for (int64_t i = 0; i < kBlockColumns; ++i) {
+        const int64_t column = t * kBlockColumns + i;
+        int value = 0;
+        if (column < k) value = centred ? codes[column] - params[column / group_size].zero : codes[column];
+        (i % 2 == 0 ? block.even_codes : block.odd_codes)[i / 2] = static_cast<uint8_t>(value);
+      }
+      for (int lane = 0; lane < 16; ++lane) {
+        const int64_t column = t * kBlockColumns + 8 * lane;
+        const uint32_t zero = !centred && column < k ? static_cast<uint32_t>(params[column / group_size].zero) : 0u;
+        block.zero_bytes[lane] = zero * 0x01010101u;
+      }
+    }
+  }
+  return out;
+}
+
+// The offset codes u of one 64-byte load of a weight row: the even columns' and the odd columns' in
+// bytes. The bytes past k (outside `bytes`) give u = 0, so that they add nothing to z_x * sum(u).
+inline void offset_weight_nibbles(const uint8_t* packed, __mmask64 bytes, bool full, __m512i& even, __m512i& odd) {
+  const __m512i flip = _mm512_set1_epi8(static_cast<char>(0x88));
+  const __m512i low_nibbles = _mm512_set1_epi8(0x0F);
+  const __m512i u = full ? _mm512_xor_si512(_mm512_loadu_si512(packed), flip)
+                         : _mm512_maskz_mov_epi8(bytes, _mm512_xor_si512(_mm512_maskz_loadu_epi8(bytes, packed), flip));
+  even = _mm512_and_si512(u, low_nibbles);
+  odd = _mm512_and_si512(_mm512_srli_epi16(u, 4), low_nibbles);
+}
+
+// products[r][g] = s_w[g] * s_x[r][g] for every group (zero past the last, to a multiple of 16), and
+// the offset term sum_g products[r][g] * offsets[r][g].
+template <int kRows, typename Scales, typename Offsets>
+void group_products(const float* scales_row, int64_t groups, Scales&& activation_scales, Offsets&& offsets,
+                    float* products, int64_t pitch, float* corrections) {
+  for (int r = 0; r < kRows; ++r) {
+    __m512 correction = _mm512_setzero_ps();
+    for (int64_t g = 0; g < pitch; g += 16) {
+      const __mmask16 lanes = groups - g >= 16 ? kAll16 : static_cast<__mmask16>((1u << std::max<int64_t>(groups - g, 0)) - 1);
+      const __m512 product = _mm512_mul_ps(_mm512_maskz_loadu_ps(lanes, scales_row + g),
+                                           _mm512_maskz_loadu_ps(lanes, activation_scales(r) + g));
+      _mm512_store_ps(products + r * pitch + g, product);
+      correction = _mm512_fmadd_ps(product, _mm512_maskz_loadu_ps(lanes, offsets(r) + g), correction);
+    }
+    corrections[r] = reduce_lanes<AddLanes>(correction);
+  }
+}
+
+// A per-thread buffer of at least `count` floats, cache-line aligned.
+inline float* scratch_floats(int64_t count) {
+  static thread_local AlignedVector<float> buffer;
+  if (static_cast<int64_t>(buffer.size()) < count) buffer.resize(count);
+  return buffer.data();
+}
+
+// The lanes' group products for block t: a broadcast when a block is one group (G = 128), else the
+// block's groups spread over the lanes by `lane_group`.
+inline __m512 block_products(const float* products, int64_t t, int group_size, int64_t groups, __m512i lane_group) {
+  if (group_size == kBlockColumns) return _mm512_set1_ps(products[t]);
+  const int64_t per_block = kBlockColumns / group_size;
+  const int64_t first = t * per_block;
+  const __mmask16 lanes = static_cast<__mmask16>((1u << std::min<int64_t>(per_block, groups - first)) - 1);
+  return permutexvar_ps(lane_group, _mm512_maskz_loadu_ps(lanes, products + first));
+}
+
+inline int64_t sixteen_padded(int64_t count) { return (count + 15) / 16 * 16; }
+
+// sums[r] = y[r] (without bias) for one weight row and kRows integer activation rows.
+template <int kRows, bool kWideCodes>
+void decode_int_kernel(const uint8_t* weight_row, const float* scales_row, int64_t k, int group_size,
+                       const DecodeRow* rows, float* sums) {
+  const int64_t groups = group_count(k, group_size);
+  const int64_t pitch = sixteen_padded(groups);
+  float* products = scratch_floats(kRows * pitch);
+  float corrections[kRows];
+  group_products<kRows>(scales_row, groups, [&](int r) { return rows[r].scales; },
+                        [&](int r) { return rows[r].offsets; }, products, pitch, corrections);
   // Lane i covers columns 8i..8i+7 of the block: group i * 8 / group_size of it.
   const __m512i lane_group = srli_epi32(
       slli_epi32(_mm512_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15), 3),
       __builtin_ctz(group_size));
+  const int64_t full_blocks = k / kBlockColumns;
+  const int64_t blocks = (k + kBlockColumns - 1) / kBlockColumns;
+  const __mmask64 tail_bytes = (__mmask64{1} << ((k % kBlockColumns) / 2)) - 1;
   __m512 acc[kRows];
   for (int r = 0; r < kRows; ++r) acc[r] = _mm512_setzero_ps();
-  const int64_t blocks = full_blocks + (tail_columns != 0);
   for (int64_t t = 0; t < blocks; ++t) {
     const bool full = t < full_blocks;
-    const __mmask64 byte_mask = full ? ~__mmask64{0} : (__mmask64{1} << (tail_columns / 2)) - 1;
-    const __mmask16 scale_mask =
-        full ? (1u << groups_per_block) - 1 : (1u << group_count(tail_columns, group_size)) - 1;
     __m512i even, odd;
-    split_weight_nibbles(_mm512_maskz_loadu_epi8(byte_mask, weight_row + t * (kBlockColumns / 2)), even, odd);
-    const __m512 weight_sums = cvtepi32_ps(
-        _mm512_dpbusd_epi32(_mm512_dpbusd_epi32(_mm512_setzero_si512(), ones, even), ones, odd));
-    const __m512 weight_scales = permutexvar_ps(
-        lane_group, _mm512_maskz_loadu_ps(scale_mask, scales_row + t * groups_per_block));
+    offset_weight_nibbles(weight_row + t * (kBlockColumns / 2), tail_bytes, full, even, odd);
+    [[maybe_unused]] const __m512i both = kWideCodes ? _mm512_add_epi8(even, odd) : even;  // u sums: below 31
     for (int r = 0; r < kRows; ++r) {
-      const QuantizedBlock& block = rows[r][t];
-      const __m512i dot = _mm512_dpbusd_epi32(
-          _mm512_dpbusd_epi32(_mm512_setzero_si512(), _mm512_load_si512(block.even_codes), even),
-          _mm512_load_si512(block.odd_codes), odd);
-      // P = sum q_x q_w - z_x sum q_w, exact in fp32 (integers below 2^24).
-      const __m512 partial = _mm512_fnmadd_ps(weight_sums, _mm512_load_ps(block.zero_lanes), cvtepi32_ps(dot));
-      acc[r] = _mm512_fmadd_ps(partial, _mm512_mul_ps(weight_scales, _mm512_load_ps(block.scale_lanes)), acc[r]);
+      const DecodeBlock& block = rows[r].blocks[t];
+      const __m512i a_even = _mm512_load_si512(block.even_codes), a_odd = _mm512_load_si512(block.odd_codes);
+      __m512i dot;
+      if constexpr (kWideCodes) {
+        dot = _mm512_dpbusd_epi32(_mm512_dpbusd_epi32(_mm512_setzero_si512(), a_even, even), a_odd, odd);
+        dot = _mm512_sub_epi32(dot, _mm512_dpbusd_epi32(_mm512_setzero_si512(), _mm512_load_si512(block.zero_bytes), both));
+      } else {
+        dot = _mm512_dpbusd_epi32(_mm512_dpbusd_epi32(_mm512_setzero_si512(), even, a_even), odd, a_odd);
+      }
+      acc[r] = _mm512_fmadd_ps(cvtepi32_ps(dot), block_products(products + r * pitch, t, group_size, groups, lane_group),
+                               acc[r]);
     }
   }
-  for (int r = 0; r < kRows; ++r) sums[r] = reduce_lanes<AddLanes>(acc[r]);
+  for (int r = 0; r < kRows; ++r) sums[r] = reduce_lanes<AddLanes>(acc[r]) + corrections[r];
 }
 
 template <int kRows>
@@ -262,27 +393,128 @@ inline __m512 dot_bf16_pairs(__m512 acc, __m512i a, __m512i b) {
   return _mm512_dpbf16_ps(acc, reinterpret_cast<__m512bh&>(a), reinterpret_cast<__m512bh&>(b));
 }
 
+// act_bits 16, row kernels: the offset codes become bf16 weights w = 8 + u / 2 = 12 + q_w / 2 (exact):
+// the byte u << 3 under the high byte 0x41 is the bf16 number 2^3 * (1 + u / 16). Four byte unpacks of
+// the even and the odd columns' bytes turn one 64-byte load into the 128 weights of four vdpbf16ps, and
+// sum(x * q_w) = 2 * (sum(x * w) - 12 * sum(x)), whose second term is the activations' own, once per
+// group. The bias 12 against |q_w / 2| <= 4 costs a few fp32 roundings of sum(x * w), far below the
+// 2^-8 of rounding x to bf16.
+//
+// The activations are stored in the unpacks' order: in block t, vector v in 0..3 and its 128-bit lane j,
+// word p is column 32 j + 2 p + (v & 1 ? 16 : 0) + (v & 2 ? 1 : 0), so that fp32 lane i of a dot product
+// holds columns of the 32-column chunk i / 4 only.
+struct alignas(64) Bf16DecodeBlock {
+  uint16_t words[4][32];
+};
+
+struct Bf16DecodeRow {
+  const Bf16DecodeBlock* blocks;
+  const float* offsets;  // -12 * sum over the group of x (x rounded to bf16)
+};
+
+struct Bf16DecodeActivations {
+  AlignedVector<Bf16DecodeBlock> blocks;  // [m][ceil(k / 128)]
+  std::vector<float> offsets;             // [m][groups]
+  int64_t blocks_per_row = 0, groups = 0;
+  Bf16DecodeRow row(int64_t r) const { return {blocks.data() + r * blocks_per_row, offsets.data() + r * groups}; }
+};
+
+inline int64_t bf16_decode_column(int v, int word) {
+  return 32 * (word / 8) + 2 * (word % 8) + ((v & 1) ? 16 : 0) + ((v & 2) ? 1 : 0);
+}
+
+inline float bf16_bits_to_float(uint16_t bits) {
+  const uint32_t wide = static_cast<uint32_t>(bits) << 16;
+  float value;
+  std::memcpy(&value, &wide, sizeof(value));
+  return value;
+}
+
+template <typename Element>
+Bf16DecodeActivations bf16_decode_activations(const Element* x, int64_t m, int64_t k, int group_size) {
+  Bf16DecodeActivations out;
+  out.blocks_per_row = (k + kBlockColumns - 1) / kBlockColumns;
+  out.groups = group_count(k, group_size);
+  out.blocks.resize(m * out.blocks_per_row);
+  out.offsets.resize(m * out.groups);
+  const int64_t pitch = out.blocks_per_row * kBlockColumns;
+  std::vector<float> row(pitch, 0.0f);
+  std::vector<uint16_t> rounded(pitch);
+  for (int64_t r = 0; r < m; ++r) {
+    load_row_fp32(x + r * k, k, row.data());
+    for (int64_t c = 0; c < pitch; c += 16) {
+      const __m256bh halves = _mm512_cvtneps_pbh(_mm512_loadu_ps(row.data() + c));
+      std::memcpy(&rounded[c], &halves, sizeof(halves));
+    }
+    for (int64_t g = 0; g < out.groups; ++g) {
+      // Subnormal bf16 values count as zero in vdpbf16ps, and so in this sum.
+      float sum = 0.0f;
+      for (int64_t c = g * group_size; c < g * group_size + group_columns(k, group_size, g); ++c) {
+        const bool subnormal = (rounded[c] & 0x7F80u) == 0;
+        sum += subnormal ? 0.0f : bf16_bits_to_float(rounded[c]);
+      }
+      out.offsets[r * out.groups + g] = -12.0f * sum;
+    }
+    for (int64_t t = 0; t < out.blocks_per_row; ++t) {
+      Bf16DecodeBlock& block = out.blocks[r * out.blocks_per_row + t];
+      for (int v = 0; v < 4; ++v) {
+        for (int word = 0; word < 32; ++word) block.words[v][word] = rounded[t * kBlockColumns + bf16_decode_column(v, word)];
+      }
+    }
+  }
+  return out;
+}
+
 // sums[r] = y[r] (without bias) for one weight row and kRows bf16 activation rows.
 template <int kRows>
-void bf16_row_kernel(const uint8_t* weight_row, const float* scales_row, int64_t k, int group_size,
-                     const uint16_t* const* rows, float* sums) {
-  const __m512i table = bf16_code_table();
+void bf16_decode_kernel(const uint8_t* weight_row, const float* scales_row, int64_t k, int group_size,
+                        const Bf16DecodeRow* rows, float* sums) {
+  const int64_t groups = group_count(k, group_size);
+  float corrections[kRows];
+  for (int r = 0; r < kRows; ++r) {
+    __m512 correction = _mm512_setzero_ps();
+    for (int64_t g = 0; g < groups; g += 16) {
+      const __mmask16 lanes = groups - g >= 16 ? kAll16 : static_cast<__mmask16>((1u << (groups - g)) - 1);
+      correction = _mm512_fmadd_ps(_mm512_maskz_loadu_ps(lanes, scales_row + g),
+                                   _mm512_maskz_loadu_ps(lanes, rows[r].offsets + g), correction);
+    }
+    corrections[r] = reduce_lanes<AddLanes>(correction);
+  }
+  // fp32 lane i holds columns of the block's 32-column chunk i / 4.
+  const __m512i lane_group = srli_epi32(
+      slli_epi32(_mm512_setr_epi32(0, 0, 0, 0, 1, 1, 1, 1, 2, 2, 2, 2, 3, 3, 3, 3), 5), __builtin_ctz(group_size));
+  const __m512i high_byte = _mm512_set1_epi8(0x41);
+  const __m512i code_bits = _mm512_set1_epi8(0x78);
+  const __m512i flip = _mm512_set1_epi8(static_cast<char>(0x88));
+  const int64_t full_blocks = k / kBlockColumns;
+  const int64_t blocks = (k + kBlockColumns - 1) / kBlockColumns;
+  const __mmask64 tail_bytes = (__mmask64{1} << ((k % kBlockColumns) / 2)) - 1;
   __m512 acc[kRows];
   for (int r = 0; r < kRows; ++r) acc[r] = _mm512_setzero_ps();
-  for (int64_t g = 0; g < group_count(k, group_size); ++g) {
-    __m512 group_acc[kRows];
-    for (int r = 0; r < kRows; ++r) group_acc[r] = _mm512_setzero_ps();
-    const int64_t group_end = std::min<int64_t>((g + 1) * group_size, k);
-    for (int64_t c = g * group_size; c < group_end; c += kChunkColumns) {
-      const int64_t bytes = std::min<int64_t>(16, (k - c) / 2);  // the bytes past k read as code 0
-      const __m128i packed = _mm_maskz_loadu_epi8(static_cast<__mmask16>((1u << bytes) - 1), weight_row + c / 2);
-      const __m512i codes = bf16_code_pairs(cvtepu8_epi32(packed), table);
-      for (int r = 0; r < kRows; ++r) group_acc[r] = dot_bf16_pairs(group_acc[r], _mm512_loadu_si512(rows[r] + c), codes);
+  for (int64_t t = 0; t < blocks; ++t) {
+    const uint8_t* packed = weight_row + t * (kBlockColumns / 2);
+    // Past k the weights do not matter: the activations there are zero.
+    const __m512i u = _mm512_xor_si512(t < full_blocks ? _mm512_loadu_si512(packed) : _mm512_maskz_loadu_epi8(tail_bytes, packed), flip);
+    const __m512i even = _mm512_and_si512(_mm512_slli_epi16(u, 3), code_bits);
+    const __m512i odd = _mm512_and_si512(_mm512_srli_epi16(u, 1), code_bits);
+    const __m512i weights[4] = {_mm512_unpacklo_epi8(even, high_byte), _mm512_unpackhi_epi8(even, high_byte),
+                                _mm512_unpacklo_epi8(odd, high_byte), _mm512_unpackhi_epi8(odd, high_byte)};
+    __m512 scale;
+    if (group_size == kBlockColumns) {
+      scale = _mm512_set1_ps(scales_row[t]);
+    } else {
+      const int64_t per_block = kBlockColumns / group_size, first = t * per_block;
+      const __mmask16 lanes = static_cast<__mmask16>((1u << std::min<int64_t>(per_block, groups - first)) - 1);
+      scale = permutexvar_ps(lane_group, _mm512_maskz_loadu_ps(lanes, scales_row + first));
     }
-    const __m512 scale = _mm512_set1_ps(scales_row[g]);
-    for (int r = 0; r < kRows; ++r) acc[r] = _mm512_fmadd_ps(group_acc[r], scale, acc[r]);
+    for (int r = 0; r < kRows; ++r) {
+      const Bf16DecodeBlock& block = rows[r].blocks[t];
+      __m512 dot = _mm512_setzero_ps();
+      for (int v = 0; v < 4; ++v) dot = dot_bf16_pairs(dot, _mm512_load_si512(block.words[v]), weights[v]);
+      acc[r] = _mm512_fmadd_ps(dot, scale, acc[r]);
+    }
   }
-  for (int r = 0; r < kRows; ++r) sums[r] = reduce_lanes<AddLanes>(acc[r]);
+  for (int r = 0; r < kRows; ++r) sums[r] = 2.0f * (reduce_lanes<AddLanes>(acc[r]) + corrections[r]);
 }
 #endif
 
@@ -561,33 +793,34 @@ void gemm_typed(const Element* x, const uint8_t* qweight, const float* scales, c
       return;
     }
 #endif
-    const int64_t blocks = (k + kBlockColumns - 1) / kBlockColumns;
-    const std::vector<QuantizedBlock> activations = quantize_activation_blocks(x, m, k, group_size, kBits);
-    auto row = [&](int64_t r) { return activations.data() + r * blocks; };
     if (m >= kPanelMinRows) {
-      run_panels<VnniPanel>(row, qweight, scales, bias, m, n, k, group_size, out);
+      const int64_t blocks = (k + kBlockColumns - 1) / kBlockColumns;
+      const std::vector<QuantizedBlock> activations = quantize_activation_blocks(x, m, k, group_size, kBits);
+      run_panels<VnniPanel>([&](int64_t r) { return activations.data() + r * blocks; }, qweight, scales, bias, m, n,
+                            k, group_size, out);
       return;
     }
+    const DecodeActivations activations = decode_activations(x, m, k, group_size, kBits);
     run_tiles<kMaxTileRows>(
-        qweight, scales, bias, m, n, k, group_size, out, row,
-        [&](auto tile_rows, const uint8_t* weight_row, const float* scales_row, const QuantizedBlock* const* rows,
-            float* sums) {
-          quantized_row_kernel<decltype(tile_rows)::value>(weight_row, scales_row, k, group_size, rows, sums);
+        qweight, scales, bias, m, n, k, group_size, out, [&](int64_t r) { return activations.row(r); },
+        [&](auto tile_rows, const uint8_t* weight_row, const float* scales_row, const DecodeRow* rows, float* sums) {
+          decode_int_kernel<decltype(tile_rows)::value, kBits == 8>(weight_row, scales_row, k, group_size, rows, sums);
         });
   } else {
 #if defined(DYQ_AVX512_HAS_BF16)
-    const AlignedVector<uint16_t> activations = bf16_activations(x, m, k);
-    const int64_t pitch = block_padded(k);
-    auto row = [&](int64_t r) { return activations.data() + r * pitch; };
     if (m >= kPanelMinRows) {
-      run_panels<Bf16Panel>(row, qweight, scales, bias, m, n, k, group_size, out);
+      const AlignedVector<uint16_t> activations = bf16_activations(x, m, k);
+      const int64_t pitch = block_padded(k);
+      run_panels<Bf16Panel>([&](int64_t r) { return activations.data() + r * pitch; }, qweight, scales, bias, m, n, k,
+                            group_size, out);
       return;
     }
+    const Bf16DecodeActivations activations = bf16_decode_activations(x, m, k, group_size);
     run_tiles<kMaxTileRows>(
-        qweight, scales, bias, m, n, k, group_size, out, row,
-        [&](auto tile_rows, const uint8_t* weight_row, const float* scales_row, const uint16_t* const* rows,
+        qweight, scales, bias, m, n, k, group_size, out, [&](int64_t r) { return activations.row(r); },
+        [&](auto tile_rows, const uint8_t* weight_row, const float* scales_row, const Bf16DecodeRow* rows,
             float* sums) {
-          bf16_row_kernel<decltype(tile_rows)::value>(weight_row, scales_row, k, group_size, rows, sums);
+          bf16_decode_kernel<decltype(tile_rows)::value>(weight_row, scales_row, k, group_size, rows, sums);
         });
 #else
     if (m >= kPanelMinRows) {
