@@ -148,38 +148,36 @@ inline void split_weight_nibbles(__m512i packed, __m512i& even, __m512i& odd) {
 // spend as few instructions as they can on each 64-byte load of a weight row. They read the codes
 // offset by 8, u = q_w + 8 = nibble XOR 8 in [0, 15], which needs no sign-extending lookup: one XOR for
 // the whole load, then a mask and a shift split it into the even and the odd columns. The offset comes
-// back as a per-group term of the activations alone, -8 * sum(q_x - z_x) for the integer widths and
-// -24 * sum(x) for bf16 (below), folded in once per output with the weight scales; every integer sum is
-// still exact, so P is the P of docs/numerics.md bit for bit.
+// back as a term of the activations alone: for the integer widths -8 * sum(q_x - z_x) over each lane's
+// 8 columns, the integer that starts the lane's vpdpbusd sum, so that P is the P of docs/numerics.md
+// bit for bit (a per-group correction in fp32 instead would cancel against the larger sums of a * u);
+// for bf16, -24 * sum(x) per group (below).
 // - act_bits 2/4: the activations are stored as a = q_x - z_x (|a| <= 15, an s8), and one vpdpbusd
 //   (u8 u times s8 a) per half gives sum(a * u) per lane of 8 columns.
 // - act_bits 8: q_x needs the u8 operand, so u takes the s8 one (it is below 16): sum(q_x * u), minus
 //   z_x * sum(u) from one more vpdpbusd with z_x in every byte of the lane.
-// Per weight row the products s_w * s_x of every group are formed once, 16 groups per instruction, and
-// so is the offset term; inside the loop a lane's partial sum is converted and multiplied by its group's
-// product.
+// Per weight row the products s_w * s_x of every group are formed once, 16 groups per instruction;
+// inside the loop a lane's P is converted and multiplied by its group's product.
 
 // 128 columns of one activation row for the integer row kernel.
 struct alignas(64) DecodeBlock {
   uint8_t even_codes[64];   // columns 0, 2, ..., 126: a = q_x - z_x (act_bits 2/4, as s8) or q_x (8)
   uint8_t odd_codes[64];    // columns 1, 3, ..., 127
   uint32_t zero_bytes[16];  // act_bits 8: z_x of the lane's group in each byte (0 past k)
+  int32_t offsets[16];      // -8 * sum of (q_x - z_x) over the lane's columns (0 past k)
 };
 
 // An activation row as the integer row kernel reads it.
 struct DecodeRow {
   const DecodeBlock* blocks;
-  const float* scales;   // s_x per group (NaN for a non-finite group)
-  const float* offsets;  // -8 * sum over the group of (q_x - z_x), exact in fp32
+  const float* scales;  // s_x per group (NaN for a non-finite group)
 };
 
 struct DecodeActivations {
   AlignedVector<DecodeBlock> blocks;  // [m][ceil(k / 128)]
-  std::vector<float> scales, offsets;  // [m][groups]
+  std::vector<float> scales;          // [m][groups]
   int64_t blocks_per_row = 0, groups = 0;
-  DecodeRow row(int64_t r) const {
-    return {blocks.data() + r * blocks_per_row, scales.data() + r * groups, offsets.data() + r * groups};
-  }
+  DecodeRow row(int64_t r) const { return {blocks.data() + r * blocks_per_row, scales.data() + r * groups}; }
 };
 
 template <typename Element>
@@ -189,22 +187,13 @@ DecodeActivations decode_activations(const Element* x, int64_t m, int64_t k, int
   out.groups = group_count(k, group_size);
   out.blocks.resize(m * out.blocks_per_row);
   out.scales.resize(m * out.groups);
-  out.offsets.resize(m * out.groups);
   const bool centred = act_bits != 8;
   std::vector<float> row(k);
   std::vector<uint8_t> codes(out.blocks_per_row * kBlockColumns, 0);
   std::vector<ActivationGroupParams> params(out.groups);
   for (int64_t r = 0; r < m; ++r) {
     quantize_activation_row(x + r * k, k, group_size, act_bits, row.data(), codes.data(), params.data());
-    float* offsets = out.offsets.data() + r * out.groups;
-    for (int64_t g = 0; g < out.groups; ++g) {
-      out.scales[r * out.groups + g] = params[g].scale;
-      int64_t sum = 0;
-      for (int64_t c = g * group_size; c < g * group_size + group_columns(k, group_size, g); ++c) {
-        sum += static_cast<int64_t>(codes[c]) - params[g].zero;
-      }
-      offsets[g] = -8.0f * static_cast<float>(sum);
-    }
+    for (int64_t g = 0; g < out.groups; ++g) out.scales[r * out.groups + g] = params[g].scale;
     for (int64_t t = 0; t < out.blocks_per_row; ++t) {
       DecodeBlock& block = out.blocks[r * out.blocks_per_row + t];
       for (int64_t i = 0; i < kBlockColumns; ++i) {
@@ -214,9 +203,12 @@ DecodeActivations decode_activations(const Element* x, int64_t m, int64_t k, int
         (i % 2 == 0 ? block.even_codes : block.odd_codes)[i / 2] = static_cast<uint8_t>(value);
       }
       for (int lane = 0; lane < 16; ++lane) {
-        const int64_t column = t * kBlockColumns + 8 * lane;
-        const uint32_t zero = !centred && column < k ? static_cast<uint32_t>(params[column / group_size].zero) : 0u;
-        block.zero_bytes[lane] = zero * 0x01010101u;
+        const int64_t first = t * kBlockColumns + 8 * lane;
+        const int zero = first < k ? params[first / group_size].zero : 0;
+        block.zero_bytes[lane] = centred ? 0u : static_cast<uint32_t>(zero) * 0x01010101u;
+        int32_t sum = 0;
+        for (int64_t column = first; column < std::min(first + 8, k); ++column) sum += codes[column] - zero;
+        block.offsets[lane] = -8 * sum;
       }
     }
   }
@@ -234,21 +226,15 @@ inline void offset_weight_nibbles(const uint8_t* packed, __mmask64 bytes, bool f
   odd = _mm512_and_si512(_mm512_srli_epi16(u, 4), low_nibbles);
 }
 
-// products[r][g] = s_w[g] * s_x[r][g] for every group (zero past the last, to a multiple of 16), and
-// the offset term sum_g products[r][g] * offsets[r][g].
-template <int kRows, typename Scales, typename Offsets>
-void group_products(const float* scales_row, int64_t groups, Scales&& activation_scales, Offsets&& offsets,
-                    float* products, int64_t pitch, float* corrections) {
+// products[r][g] = s_w[g] * s_x[r][g] for every group (zero past the last, to a multiple of 16).
+template <int kRows>
+void group_products(const float* scales_row, int64_t groups, const DecodeRow* rows, float* products, int64_t pitch) {
   for (int r = 0; r < kRows; ++r) {
-    __m512 correction = _mm512_setzero_ps();
     for (int64_t g = 0; g < pitch; g += 16) {
       const __mmask16 lanes = groups - g >= 16 ? kAll16 : static_cast<__mmask16>((1u << std::max<int64_t>(groups - g, 0)) - 1);
-      const __m512 product = _mm512_mul_ps(_mm512_maskz_loadu_ps(lanes, scales_row + g),
-                                           _mm512_maskz_loadu_ps(lanes, activation_scales(r) + g));
-      _mm512_store_ps(products + r * pitch + g, product);
-      correction = _mm512_fmadd_ps(product, _mm512_maskz_loadu_ps(lanes, offsets(r) + g), correction);
+      _mm512_store_ps(products + r * pitch + g, _mm512_mul_ps(_mm512_maskz_loadu_ps(lanes, scales_row + g),
+                                                              _mm512_maskz_loadu_ps(lanes, rows[r].scales + g)));
     }
-    corrections[r] = reduce_lanes<AddLanes>(correction);
   }
 }
 
@@ -278,9 +264,7 @@ void decode_int_kernel(const uint8_t* weight_row, const float* scales_row, int64
   const int64_t groups = group_count(k, group_size);
   const int64_t pitch = sixteen_padded(groups);
   float* products = scratch_floats(kRows * pitch);
-  float corrections[kRows];
-  group_products<kRows>(scales_row, groups, [&](int r) { return rows[r].scales; },
-                        [&](int r) { return rows[r].offsets; }, products, pitch, corrections);
+  group_products<kRows>(scales_row, groups, rows, products, pitch);
   // Lane i covers columns 8i..8i+7 of the block: group i * 8 / group_size of it.
   const __m512i lane_group = srli_epi32(
       slli_epi32(_mm512_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15), 3),
@@ -298,18 +282,19 @@ void decode_int_kernel(const uint8_t* weight_row, const float* scales_row, int64
     for (int r = 0; r < kRows; ++r) {
       const DecodeBlock& block = rows[r].blocks[t];
       const __m512i a_even = _mm512_load_si512(block.even_codes), a_odd = _mm512_load_si512(block.odd_codes);
-      __m512i dot;
+      const __m512i offsets = _mm512_load_si512(block.offsets);
+      __m512i dot;  // P of each lane
       if constexpr (kWideCodes) {
-        dot = _mm512_dpbusd_epi32(_mm512_dpbusd_epi32(_mm512_setzero_si512(), a_even, even), a_odd, odd);
+        dot = _mm512_dpbusd_epi32(_mm512_dpbusd_epi32(offsets, a_even, even), a_odd, odd);
         dot = _mm512_sub_epi32(dot, _mm512_dpbusd_epi32(_mm512_setzero_si512(), _mm512_load_si512(block.zero_bytes), both));
       } else {
-        dot = _mm512_dpbusd_epi32(_mm512_dpbusd_epi32(_mm512_setzero_si512(), even, a_even), odd, a_odd);
+        dot = _mm512_dpbusd_epi32(_mm512_dpbusd_epi32(offsets, even, a_even), odd, a_odd);
       }
       acc[r] = _mm512_fmadd_ps(cvtepi32_ps(dot), block_products(products + r * pitch, t, group_size, groups, lane_group),
                                acc[r]);
     }
   }
-  for (int r = 0; r < kRows; ++r) sums[r] = reduce_lanes<AddLanes>(acc[r]) + corrections[r];
+  for (int r = 0; r < kRows; ++r) sums[r] = reduce_lanes<AddLanes>(acc[r]);
 }
 
 template <int kRows>
