@@ -180,7 +180,7 @@ def _seeds(task: str, seed0: int, task_indices):
         return lambda i: seed0 + i
     if not envs.libero.is_suite(task):
         raise ValueError(f"task_indices selects tasks of a LIBERO suite; {task!r} is one task")
-    count = len(envs.libero.task_names(task))
+    count = envs.libero.TASKS_PER_SUITE
     bad = [i for i in task_indices if not 0 <= int(i) < count]
     if bad or not task_indices:
         raise ValueError(f"task_indices must be task indices 0..{count - 1} of {task}, got {list(task_indices)}")
