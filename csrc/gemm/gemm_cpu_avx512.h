@@ -245,14 +245,14 @@ inline float* scratch_floats(int64_t count) {
   return buffer.data();
 }
 
-// The lanes' group products for block t: a broadcast when a block is one group (G = 128), else the
-// block's groups spread over the lanes by `lane_group`.
-inline __m512 block_products(const float* products, int64_t t, int group_size, int64_t groups, __m512i lane_group) {
-  if (group_size == kBlockColumns) return _mm512_set1_ps(products[t]);
+// The lanes' values of a per-group array (scales, products) for block t: a broadcast when a block is one
+// group (G = 128), else the block's groups spread over the lanes by `lane_group`.
+inline __m512 block_lanes(const float* per_group, int64_t t, int group_size, int64_t groups, __m512i lane_group) {
+  if (group_size == kBlockColumns) return _mm512_set1_ps(per_group[t]);
   const int64_t per_block = kBlockColumns / group_size;
   const int64_t first = t * per_block;
   const __mmask16 lanes = static_cast<__mmask16>((1u << std::min<int64_t>(per_block, groups - first)) - 1);
-  return permutexvar_ps(lane_group, _mm512_maskz_loadu_ps(lanes, products + first));
+  return permutexvar_ps(lane_group, _mm512_maskz_loadu_ps(lanes, per_group + first));
 }
 
 inline int64_t sixteen_padded(int64_t count) { return (count + 15) / 16 * 16; }
@@ -290,7 +290,7 @@ void decode_int_kernel(const uint8_t* weight_row, const float* scales_row, int64
       } else {
         dot = _mm512_dpbusd_epi32(_mm512_dpbusd_epi32(offsets, even, a_even), odd, a_odd);
       }
-      acc[r] = _mm512_fmadd_ps(cvtepi32_ps(dot), block_products(products + r * pitch, t, group_size, groups, lane_group),
+      acc[r] = _mm512_fmadd_ps(cvtepi32_ps(dot), block_lanes(products + r * pitch, t, group_size, groups, lane_group),
                                acc[r]);
     }
   }
@@ -484,14 +484,7 @@ void bf16_decode_kernel(const uint8_t* weight_row, const float* scales_row, int6
     const __m512i odd = _mm512_and_si512(_mm512_srli_epi16(u, 1), code_bits);
     const __m512i weights[4] = {_mm512_unpacklo_epi8(even, high_byte), _mm512_unpackhi_epi8(even, high_byte),
                                 _mm512_unpacklo_epi8(odd, high_byte), _mm512_unpackhi_epi8(odd, high_byte)};
-    __m512 scale;
-    if (group_size == kBlockColumns) {
-      scale = _mm512_set1_ps(scales_row[t]);
-    } else {
-      const int64_t per_block = kBlockColumns / group_size, first = t * per_block;
-      const __mmask16 lanes = static_cast<__mmask16>((1u << std::min<int64_t>(per_block, groups - first)) - 1);
-      scale = permutexvar_ps(lane_group, _mm512_maskz_loadu_ps(lanes, scales_row + first));
-    }
+    const __m512 scale = block_lanes(scales_row, t, group_size, groups, lane_group);
     for (int r = 0; r < kRows; ++r) {
       const Bf16DecodeBlock& block = rows[r].blocks[t];
       __m512 dot = _mm512_setzero_ps();
