@@ -228,3 +228,9 @@ def test_every_task_the_commands_take_has_a_profile_budget():
     assert set(prof.PROFILE_BUDGETS) == set(envs.ALL_TASKS)
     for task, budget in prof.PROFILE_BUDGETS.items():
         assert budget.episodes >= 1 and all(width in prof.QUANTIZED_WIDTHS for width in budget.widths), task
+
+
+def test_every_task_the_commands_take_has_a_success_tolerance():
+    # `dyq calibrate` turns the measured sensitivity into Eq. 5's bound through the task's tolerance.
+    assert set(prof.SUCCESS_TOLERANCE) == set(envs.ALL_TASKS)
+    assert all(0 < tolerance < 0.1 for tolerance in prof.SUCCESS_TOLERANCE.values())
