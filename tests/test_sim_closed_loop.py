@@ -176,6 +176,23 @@ def test_results_merge_keeps_other_rows(tmp_path, monkeypatch):
     assert "| w4a8 |" in evaluate.markdown_table(data)
 
 
+def test_each_row_records_the_cpu_path_it_ran_on(tmp_path, monkeypatch):
+    out = tmp_path / "closed_loop.json"
+    row = evaluate.summarize([{"seed": 0, "success": True, "steps": 1, "bits": [16], "latency_ms": [1.0],
+                               "prefill_kernel_bits": [{}], "decode_kernel_bits": [{}]}])
+    # A file written when the path was recorded once per task: its rows keep that value.
+    out.write_text(json.dumps({"tasks": {TASK: {"configs": {"fp32": row}, "cpu_isa": "avx512_bf16",
+                                                "checkpoint_digest": "abc"}}}))
+    monkeypatch.setattr(dyq, "cpu_info", lambda: {"isa": "avx2"})
+    data = evaluate.update_results(out, TASK, [0], "ckpt", "abc", {"dyq": row})
+    configs = data["tasks"][TASK]["configs"]
+    assert (configs["fp32"]["cpu_isa"], configs["dyq"]["cpu_isa"]) == ("avx512_bf16", "avx2")
+    assert "cpu_isa" not in data["tasks"][TASK]
+    assert "CPU kernel path per row: fp32 avx512_bf16, dyq avx2." in evaluate.markdown_table(data)
+    data = evaluate.update_results(out, TASK, [0], "ckpt", "abc", {"fp32": row})
+    assert "CPU kernel path per row" not in evaluate.markdown_table(data)  # one path: nothing to say
+
+
 def test_checkpoints_are_named_the_same_wherever_dyq_is_installed(tmp_path, monkeypatch):
     assert evaluate.checkpoint_label(evaluate.default_checkpoint("lift")) == "dyq/sim/policies/lift"
     monkeypatch.chdir(tmp_path)

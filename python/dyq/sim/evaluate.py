@@ -274,11 +274,17 @@ def update_results(out: Path, task: str, seeds: list[int], checkpoint: str, dige
         entry["configs"] = {}  # a retrained policy: the old rows describe another policy
     entry.update(horizon=envs.spec(task).horizon, seeds=seeds, checkpoint=checkpoint_label(checkpoint),
                  checkpoint_digest=digest)
-    entry["configs"].update(rows)
     import dyq
 
-    # The CPU kernel path of this run (its W4A16 fallback is bf16 on CPUs with AVX512-BF16, fp32 before).
-    entry["cpu_isa"] = dyq.cpu_info()["isa"]
+    # The CPU kernel path each row ran on: its W4A16 fallback is bf16 on CPUs with AVX512-BF16 and fp32 on
+    # the others, so rows merged from machines of different kinds say which numerics they had. Rows written
+    # before the field existed take the task's former single value.
+    earlier_isa = entry.pop("cpu_isa", None)
+    for row in entry["configs"].values():
+        if earlier_isa is not None:
+            row.setdefault("cpu_isa", earlier_isa)
+    isa = dyq.cpu_info()["isa"]
+    entry["configs"].update({name: {**row, "cpu_isa": isa} for name, row in rows.items()})
     entry["comparisons"] = [c for c in (compare(entry["configs"], a, b) for a, b in COMPARISONS) if c]
     data["device"] = "cpu"
     data["environment"] = results_io.environment()
@@ -317,6 +323,10 @@ def markdown_table(data: dict[str, Any]) -> str:
                 f"| [{100 * lo:.0f}, {100 * hi:.0f}] % | {row['mean_bits']:.2f} | {100 * row['share_below_8']:.0f} % "
                 f"| {' / '.join(f'{100 * share[str(w)]:.0f}' for w in WIDTHS)} % | {row['mean_steps']:.0f} "
                 f"| {row['latency_ms']['median']:.1f} |")
+        isas = {row.get("cpu_isa") for row in entry["configs"].values()} - {None}
+        if len(isas) > 1:  # the W4A16 fallback's numerics follow the CPU path (docs/numerics.md)
+            lines += ["", "CPU kernel path per row: " + ", ".join(
+                f"{name} {row.get('cpu_isa', '?')}" for name, row in entry["configs"].items()) + "."]
         reference = entry["configs"].get("fp32")
         for name in ("dyq", "dyq_calibrated"):
             row = entry["configs"].get(name)
