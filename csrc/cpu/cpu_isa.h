@@ -12,7 +12,8 @@
 
 namespace dyq::cpu {
 
-// The kernels of one path, with the arguments of dyq::cpu::gemm and dyq::cpu::quantize_activations.
+// The kernels of one path, with the arguments of dyq::cpu::gemm, dyq::cpu::quantize_activations and
+// dyq::cpu::hadamard_transform.
 struct CpuKernelSet {
   bool (*gemm)(const void* x, ScalarType dtype, const uint8_t* qweight, const float* scales, const void* bias,
                int64_t m, int64_t n, int64_t k, int group_size, int act_bits, void* out);
@@ -20,6 +21,8 @@ struct CpuKernelSet {
                                uint8_t* packed, float* scales, uint8_t* zeros);
   // The name of the kernel that gemm runs for these arguments (benchmarks record it).
   const char* (*gemm_kernel)(int64_t m, int64_t k, int group_size, int act_bits);
+  void (*hadamard_transform)(const void* x, ScalarType dtype, const float* signs, const float* left, int64_t rows,
+                             int64_t n, int64_t m, void* out);
 };
 
 struct CpuPath {

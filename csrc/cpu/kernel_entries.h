@@ -4,10 +4,13 @@
 // baseline code outside the target region: they only choose the element type and width, then call in.
 #pragma once
 
+#include <algorithm>
 #include <cmath>
 #include <cstdint>
+#include <type_traits>
 #include <vector>
 
+#include "activation/hadamard_cpu_row.h"
 #include "common/cpu_dtype.h"
 #include "common/precision.h"
 #include "cpu/cpu_isa.h"
@@ -61,6 +64,35 @@ void quantize_activations(const void* x, ScalarType dtype, int64_t m, int64_t k,
           }
         },
         [] {});
+  });
+}
+
+// The online Hadamard rotation (activation/hadamard_cpu.h): left / sqrt(p) computed once, then rows in
+// parallel, each with its own scratch.
+template <typename Element>
+void hadamard_rows(const Element* x, const float* signs, const float* left, int64_t rows, int64_t n, int64_t m,
+                   Element* out) {
+  const int64_t p = n / m;
+  const double norm = 1.0 / std::sqrt(static_cast<double>(p));
+  std::vector<float> scaled_left(m * m);
+  for (int64_t i = 0; i < m * m; ++i) scaled_left[i] = static_cast<float>(left[i] * norm);
+  // A chunk of rows is at least ~64K elements of work, so that small calls stay on one thread.
+  const int64_t grain = std::max<int64_t>(1, (int64_t{1} << 16) / n);
+  parallel_for(0, rows, grain, [&](int64_t row_begin, int64_t row_end) {
+    std::vector<float> signed_row(n), product(std::is_same_v<Element, float> ? 0 : n);
+    for (int64_t row = row_begin; row < row_end; ++row) {
+      hadamard_transform_row(x + row * n, signs, scaled_left.data(), m, p, signed_row.data(), product.data(),
+                             out + row * n);
+    }
+  });
+}
+
+void hadamard_transform(const void* x, ScalarType dtype, const float* signs, const float* left, int64_t rows,
+                        int64_t n, int64_t m, void* out) {
+  if (rows == 0 || n == 0) return;
+  dispatch_element_type(dtype, [&](auto element) {
+    using Element = decltype(element);
+    hadamard_rows(static_cast<const Element*>(x), signs, left, rows, n, m, static_cast<Element*>(out));
   });
 }
 
@@ -135,6 +167,6 @@ bool gemm(const void* x, ScalarType dtype, const uint8_t* qweight, const float* 
 
 }  // namespace
 
-extern const CpuKernelSet kernels = {gemm, quantize_activations, gemm_kernel};
+extern const CpuKernelSet kernels = {gemm, quantize_activations, gemm_kernel, hadamard_transform};
 
 }  // namespace dyq::cpu::DYQ_ISA_NAMESPACE

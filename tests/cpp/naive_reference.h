@@ -145,6 +145,32 @@ inline GemmReference gemm(const std::vector<float>& x, const QuantizedWeight& we
   return ref;
 }
 
+// The online Hadamard rotation of activation/hadamard_cpu.h in float64, from its definition: each row times
+// diag(signs) (left (x) H_p) / sqrt(p), H_p[j, l] = (-1)^popcount(j & l) (Sylvester's matrix entry by entry,
+// no butterfly). Applied as the two dense factors, (m^2 p + m p^2) per row rather than n^2.
+inline std::vector<double> hadamard_transform(const std::vector<float>& x, const std::vector<float>& signs,
+                                              const std::vector<float>& left, int64_t rows, int64_t m, int64_t p) {
+  const int64_t n = m * p;
+  std::vector<double> out(rows * n), mixed(n);
+  for (int64_t row = 0; row < rows; ++row) {
+    for (int64_t k = 0; k < m; ++k) {  // mixed = left^T (x * signs), x viewed as [m, p]
+      for (int64_t j = 0; j < p; ++j) {
+        double sum = 0.0;
+        for (int64_t i = 0; i < m; ++i) sum += double{left[i * m + k]} * x[row * n + i * p + j] * signs[i * p + j];
+        mixed[k * p + j] = sum;
+      }
+    }
+    for (int64_t k = 0; k < m; ++k) {  // out = mixed H_p / sqrt(p)
+      for (int64_t l = 0; l < p; ++l) {
+        double sum = 0.0;
+        for (int64_t j = 0; j < p; ++j) sum += (__builtin_popcountll(j & l) % 2 ? -1.0 : 1.0) * mixed[k * p + j];
+        out[row * n + k * p + l] = sum / std::sqrt(static_cast<double>(p));
+      }
+    }
+  }
+  return out;
+}
+
 // Random normal values with a few exact zeros, seeded.
 inline std::vector<float> random_values(size_t count, uint32_t seed, float stddev = 1.0f) {
   std::mt19937 rng(seed);
