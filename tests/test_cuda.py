@@ -9,6 +9,7 @@ from helpers import DTYPES, assert_gemm_close, random_activations, random_weight
 
 import dyq
 from dyq import reference
+from dyq.rotation import OnlineRotation
 
 pytestmark = pytest.mark.cuda
 
@@ -306,3 +307,27 @@ def test_activations_near_the_fp32_range_are_finite_on_cuda(act_bits, rng):
     x[:, ::2] = -3e38  # hi - lo exceeds FLT_MAX
     _, act_scales, _ = torch.ops.dyq.quantize_activations(x.cuda(), 64, 4)
     assert torch.isfinite(act_scales).all()
+
+
+# ---- the online Hadamard rotation ------------------------------------------------------------------
+
+@pytest.mark.parametrize("dtype", DTYPES)
+@pytest.mark.parametrize("n", [1, 8, 96, 1536, 2816, 11008, 16384])
+def test_hadamard_transform_matches_the_cpu_op(n, dtype, rng):
+    """One block per row, the butterfly in shared memory (11008 = 5504 x 2 and 16384 need more than 48 KiB).
+    The CPU op is tested against the dense float64 rotation (test_hadamard_transform.py)."""
+    rotation = OnlineRotation(n, seed=3)
+    signs, left = rotation.signs.float(), rotation.left.float()
+    x = torch.randn(5, n, generator=rng).to(dtype)
+    got = dyq.ops.hadamard_transform(x.cuda(), signs.cuda(), left.cuda())
+    assert got.dtype == dtype
+    expected = dyq.ops.hadamard_transform(x.float(), signs, left)  # fp32 on the CPU, then one rounding
+    rtol = {torch.float32: 0.0, torch.bfloat16: 2**-7, torch.float16: 2**-10}[dtype]
+    torch.testing.assert_close(got.cpu().float(), expected, rtol=rtol, atol=2e-5 if dtype == torch.float32 else 1e-4)
+
+
+def test_hadamard_transform_opcheck(rng):
+    rotation = OnlineRotation(96, seed=1)
+    x = torch.randn(2, 5, 96, generator=rng).cuda()
+    torch.library.opcheck(torch.ops.dyq.hadamard_transform.default,
+                          (x, rotation.signs.float().cuda(), rotation.left.float().cuda()))

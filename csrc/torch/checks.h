@@ -175,6 +175,36 @@ inline void check_quantize_activations(const at::Tensor& x, int64_t group_size, 
                     act_bits, " K must be a multiple of ", 8 / act_bits, " (whole bytes of packed codes)");
 }
 
+// hadamard_transform: x [..., n] (n its last dimension), signs float32 [n], left float32 [m, m] with
+// n = m * p, p a power of two; signs and left contiguous and on x's device (activation/hadamard_cpu.h).
+inline void check_hadamard_transform(const at::Tensor& x, const at::Tensor& signs, const at::Tensor& left) {
+  check_activation(x, "x");
+  check_strided(signs, "signs");
+  check_strided(left, "left");
+  TORCH_CHECK(signs.scalar_type() == at::kFloat, "dyq: signs must be float32, got ", signs.scalar_type());
+  TORCH_CHECK(left.scalar_type() == at::kFloat, "dyq: left must be float32, got ", left.scalar_type());
+  const c10::SymInt n = x.sym_size(-1);
+  TORCH_CHECK(signs.dim() == 1 && signs.sym_size(0) == n, "dyq: signs must have shape [n] = [", n,
+              "] (x's last dimension), got ", signs.sym_sizes());
+  TORCH_CHECK(left.dim() == 2 && left.sym_size(0) == left.sym_size(1) && left.sym_size(0) >= 1,
+              "dyq: left must be a square matrix [m, m], got ", left.sym_sizes());
+  const c10::SymInt m = left.sym_size(0);
+  TORCH_CHECK(n % m == 0, "dyq: x has n = ", n, " features, not a multiple of left's order m = ", m);
+  const int64_t p = (n / m).guard_int(__FILE__, __LINE__);
+  TORCH_CHECK(p >= 1 && (p & (p - 1)) == 0, "dyq: x has n = ", n, " features and left has order m = ", m,
+              "; n / m = ", p, " must be a power of two (the order of the Walsh-Hadamard factor)");
+  TORCH_CHECK(signs.is_contiguous(), "dyq: signs must be contiguous");
+  TORCH_CHECK(left.is_contiguous(), "dyq: left must be contiguous (row-major [m, m])");
+  check_same_device(signs, "signs", x.device());
+  check_same_device(left, "left", x.device());
+}
+
+// Checks hadamard_transform's arguments and allocates its output: x's shape and dtype, contiguous.
+inline at::Tensor hadamard_transform_output(const at::Tensor& x, const at::Tensor& signs, const at::Tensor& left) {
+  check_hadamard_transform(x, signs, left);
+  return at::empty(x.sizes(), x.options());
+}
+
 // Checks quantize_weight's arguments; returns (N, K).
 inline std::pair<int64_t, int64_t> check_quantize_weight_args(const at::Tensor& weight, int64_t group_size) {
   check_quantize_weight(weight, group_size);

@@ -14,6 +14,7 @@ TORCH_LIBRARY(dyq, m) {
   m.def(
       "gemm_with_flag(Tensor x, Tensor qweight, Tensor scales, int group_size, Tensor act_bits_flag, "
       "Tensor? bias=None) -> Tensor");
+  m.def("hadamard_transform(Tensor x, Tensor signs, Tensor left) -> Tensor");
   // The checks alone (metadata only: they read no data, so they work on meta and fake tensors).
   m.def("_check_quantize_weight(Tensor weight, int group_size) -> ()");
   m.def("_check_dequantize_weight(Tensor qweight, Tensor scales, int group_size) -> ()");
@@ -22,6 +23,7 @@ TORCH_LIBRARY(dyq, m) {
   m.def(
       "_check_gemm_with_flag(Tensor x, Tensor qweight, Tensor scales, int group_size, Tensor act_bits_flag, "
       "Tensor? bias=None) -> ()");
+  m.def("_check_hadamard_transform(Tensor x, Tensor signs, Tensor left) -> ()");
 }
 
 // Composite: the checks run above every backend and every tensor subclass, on the tensors as given.
@@ -31,6 +33,7 @@ TORCH_LIBRARY_IMPL(dyq, CompositeImplicitAutograd, m) {
   m.impl("_check_quantize_activations", &dyq::check_quantize_activations);
   m.impl("_check_gemm", &dyq::check_gemm);
   m.impl("_check_gemm_with_flag", &dyq::check_gemm_with_flag);
+  m.impl("_check_hadamard_transform", &dyq::check_hadamard_transform);
 }
 
 namespace {
@@ -53,7 +56,7 @@ void reject_non_strided(const c10::OperatorHandle& op, torch::jit::Stack* stack)
 #define DYQ_REJECT_NON_STRIDED(dispatch_key)                                                                   \
   TORCH_LIBRARY_IMPL(dyq, dispatch_key, m) {                                                                   \
     for (const char* name : {"quantize_weight", "dequantize_weight", "quantize_activations", "gemm",          \
-                             "gemm_with_flag"}) {                                                             \
+                             "gemm_with_flag", "hadamard_transform"}) {                                       \
       m.impl(name, torch::CppFunction::makeFromBoxedFunction<&reject_non_strided>());                         \
     }                                                                                                          \
   }

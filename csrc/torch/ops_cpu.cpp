@@ -7,6 +7,7 @@
 #include <new>
 
 #include "activation/act_quant_cpu.h"
+#include "activation/hadamard_cpu.h"
 #include "gemm/gemm_cpu.h"
 #include "parallel/parallel.h"
 #include "torch/checks.h"
@@ -78,6 +79,18 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> quantize_activations_cpu(const at
   return {packed, scales, zeros};
 }
 
+at::Tensor hadamard_transform_cpu(const at::Tensor& x, const at::Tensor& signs, const at::Tensor& left) {
+  at::Tensor out = hadamard_transform_output(x, signs, left);
+  const int64_t n = x.size(-1);
+  const at::Tensor xc = x.contiguous();
+  with_cpu_errors([&] {
+    cpu::hadamard_transform(xc.const_data_ptr(), to_dyq_dtype(x.scalar_type()), signs.const_data_ptr<float>(),
+                            left.const_data_ptr<float>(), xc.numel() / n, n, left.size(0), out.mutable_data_ptr());
+    return true;
+  });
+  return out;
+}
+
 struct CpuGemm {
   using Precision = int64_t;  // the CPU kernels take the width itself
 
@@ -128,4 +141,5 @@ TORCH_LIBRARY_IMPL(dyq, CPU, m) {
   m.impl("quantize_activations", &dyq::quantize_activations_cpu);
   m.impl("gemm", &dyq::gemm_cpu);
   m.impl("gemm_with_flag", &dyq::gemm_with_flag_cpu);
+  m.impl("hadamard_transform", &dyq::hadamard_transform_cpu);
 }

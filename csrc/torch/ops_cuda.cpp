@@ -9,6 +9,7 @@
 #include <torch/library.h>
 
 #include "activation/act_quant_cuda.h"
+#include "activation/hadamard_cuda.h"
 #include "gemm/gemm_cuda.h"
 #include "torch/checks.h"
 #include "torch/gemm_op.h"
@@ -80,6 +81,23 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> quantize_activations_cuda(const a
                                           zeros.mutable_data_ptr<uint8_t>(), at::cuda::getCurrentCUDAStream()),
                "quantize_activations");
   return {packed, scales, zeros};
+}
+
+// One block holds a row in shared memory, so n is bounded by the device's opt-in limit per block.
+at::Tensor hadamard_transform_cuda(const at::Tensor& x, const at::Tensor& signs, const at::Tensor& left) {
+  at::Tensor out = hadamard_transform_output(x, signs, left);
+  const c10::cuda::CUDAGuard guard(x.device());
+  const int64_t n = x.size(-1);
+  int64_t max_columns = 0;
+  check_launch(cuda::hadamard_max_columns(x.device().index(), &max_columns), "shared memory query");
+  TORCH_CHECK(n <= max_columns, "dyq: x has n = ", n, " features; hadamard_transform on ", x.device(),
+              " holds a row in shared memory, at most ", max_columns, " features");
+  const at::Tensor xc = x.contiguous();
+  check_launch(cuda::hadamard_transform(xc.const_data_ptr(), to_dyq_dtype(x.scalar_type()),
+                                        signs.const_data_ptr<float>(), left.const_data_ptr<float>(), xc.numel() / n,
+                                        n, left.size(0), out.mutable_data_ptr(), at::cuda::getCurrentCUDAStream()),
+               "hadamard_transform");
+  return out;
 }
 
 // The address the kernels read the flag at. Pinned host memory is mapped into the device's address
@@ -165,4 +183,5 @@ TORCH_LIBRARY_IMPL(dyq, CUDA, m) {
   m.impl("quantize_activations", &dyq::quantize_activations_cuda);
   m.impl("gemm", &dyq::gemm_cuda);
   m.impl("gemm_with_flag", &dyq::gemm_with_flag_cuda);
+  m.impl("hadamard_transform", &dyq::hadamard_transform_cuda);
 }

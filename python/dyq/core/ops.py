@@ -50,6 +50,12 @@ def _gemm_with_flag_fake(x, qweight, scales, group_size, act_bits_flag, bias=Non
     return x.new_empty(tuple(x.shape[:-1]) + (qweight.shape[0],))
 
 
+@torch.library.register_fake("dyq::hadamard_transform")
+def _hadamard_transform_fake(x, signs, left):
+    torch.ops.dyq._check_hadamard_transform(x, signs, left)
+    return x.new_empty(x.shape)
+
+
 # ---- autograd: gradients through the frozen INT4 weights ---------------------------------------------
 #
 # The weights are static, so only x (and the bias) get gradients. The activation quantization is treated
@@ -81,6 +87,27 @@ def _gemm_backward(ctx, grad_out):
 
 torch.library.register_autograd("dyq::gemm", _gemm_backward, setup_context=_gemm_setup_context)
 torch.library.register_autograd("dyq::gemm_with_flag", _gemm_backward, setup_context=_gemm_setup_context)
+
+
+# The rotation is linear: with R = diag(signs) (left (x) H_p) / sqrt(p) and H_p symmetric,
+# grad_x = grad_y R^T = (grad_y (left^T (x) H_p) / sqrt(p)) * signs, the op itself with unit signs and left^T.
+# signs and left are constants of the rotation (no gradient).
+def _hadamard_transform_setup_context(ctx, inputs, output):
+    _, signs, left = inputs
+    ctx.save_for_backward(signs, left)
+
+
+def _hadamard_transform_backward(ctx, grad_out):
+    signs, left = ctx.saved_tensors
+    grad_x = None
+    if ctx.needs_input_grad[0]:
+        rotated = torch.ops.dyq.hadamard_transform(grad_out, torch.ones_like(signs), left.T.contiguous())
+        grad_x = rotated * signs.to(rotated.dtype)
+    return grad_x, None, None
+
+
+torch.library.register_autograd("dyq::hadamard_transform", _hadamard_transform_backward,
+                                setup_context=_hadamard_transform_setup_context)
 
 
 def _groups(k, group_size: int):
@@ -115,6 +142,15 @@ def gemm(x: torch.Tensor, qweight: torch.Tensor, scales: torch.Tensor, group_siz
     if isinstance(act_bits, torch.Tensor):
         return torch.ops.dyq.gemm_with_flag(x, qweight, scales, group_size, act_bits, bias)
     return torch.ops.dyq.gemm(x, qweight, scales, group_size, act_bits, bias)
+
+
+def hadamard_transform(x: torch.Tensor, signs: torch.Tensor, left: torch.Tensor) -> torch.Tensor:
+    """``(x * signs) R`` over the last dimension n of ``x``, ``R = left (x) H_p / sqrt(p)``: ``left`` float32
+    [m, m], ``H_p`` Sylvester's +-1 Hadamard matrix of order ``p = n / m`` (a power of two), ``signs``
+    float32 [n]. The output has x's shape and dtype (computed in float32). This is the run-time rotation of
+    :class:`dyq.rotation.OnlineRotation`; the kernel applies ``H_p`` by the fast Walsh-Hadamard butterfly,
+    ``n (log2 p + m)`` operations per row instead of ``n^2`` (docs/numerics.md, section 1a)."""
+    return torch.ops.dyq.hadamard_transform(x, signs, left)
 
 
 def width_counts() -> dict[int, int]:
