@@ -62,6 +62,23 @@ def test_rotated_float_model_computes_the_same_function(tied):
     assert torch.equal(rotated.model.norm.weight, torch.ones(48))
 
 
+def test_the_online_rotation_runs_the_hadamard_kernel(monkeypatch):
+    """down_proj's input (96 = 12 x 8) is rotated by dyq.ops.hadamard_transform, once per layer and call;
+    float64 inputs and sizes without a Hadamard construction take the two torch matrix products."""
+    calls = []
+    kernel = dyq.ops.hadamard_transform
+    monkeypatch.setattr(dyq.ops, "hadamard_transform", lambda *args: calls.append(args[0].shape) or kernel(*args))
+    model = outlier_llama()
+    rotate_llama(model)
+    with torch.no_grad():
+        model(torch.randint(0, 200, (2, 7)))
+    assert calls == [(2, 7, 96)] * 2
+    calls.clear()
+    OnlineRotation(96)(torch.randn(3, 96, dtype=torch.float64))
+    OnlineRotation(22)(torch.randn(3, 22))
+    assert calls == []
+
+
 def test_rotation_spreads_the_outlier_channel():
     model = outlier_llama()
     rotated = copy.deepcopy(model)

@@ -18,8 +18,9 @@ Hugging Face Llama model, in place, before :func:`dyq.quantize_model`:
    attention exact.
 3. **down_proj's input** (size intermediate_size), online: ``silu(gate) * up`` is not linear in the
    weights, so the rotation runs at run time (:class:`OnlineRotation`, a forward pre-hook of down_proj)
-   and down_proj's weight becomes ``W R``. It costs ``(m + p) * n`` multiply-adds per token for
-   ``n = m * p`` (two small matrix products, below), against ``n * d`` for the layer itself.
+   and down_proj's weight becomes ``W R``. For ``n = m * p`` it is the op ``dyq.ops.hadamard_transform``:
+   a fast Walsh-Hadamard butterfly for the power-of-two factor and a small dense product for the Paley
+   one, ``(log2 p + m) * n`` operations per token against ``n * d`` for the layer itself.
 
 **Sizes that are not powers of two.** :func:`hadamard_matrix` builds a Hadamard matrix of order
 ``n = 2^k * m`` as the Kronecker product of Sylvester's ``H_{2^k}`` with a Paley matrix of order m: Paley I
@@ -36,6 +37,11 @@ import math
 
 import torch
 from torch import nn
+
+from .core import ops
+
+# The dtypes dyq.ops.hadamard_transform takes; others (float64) run the two matrix products in torch.
+_KERNEL_DTYPES = (torch.float32, torch.bfloat16, torch.float16)
 
 
 # ---- Hadamard matrices ----------------------------------------------------------------------------------
@@ -102,8 +108,11 @@ def hadamard_matrix(n: int) -> torch.Tensor | None:
 
 
 class OnlineRotation(nn.Module):
-    """``x -> x R`` with ``R = diag(signs) (A kron B)``, A [m, m] and B [p, p] orthogonal: computed as
-    ``A^T X B`` on x viewed as [..., m, p], which is ``(m + p) n`` multiply-adds instead of ``n^2``.
+    """``x -> x R`` with ``R = diag(signs) (A kron B)``, A [m, m] and B [p, p] orthogonal: ``A^T X B`` on x
+    viewed as [..., m, p]. With the Hadamard factors (B Sylvester's, p a power of two) and x in float32,
+    bfloat16 or float16 this is :func:`dyq.ops.hadamard_transform` (the butterfly for B, ``(log2 p + m) n``
+    operations, computed in float32, output in x's dtype); otherwise two torch matrix products, ``(m + p) n``
+    multiply-adds. Both compute :meth:`matrix`'s R, so weights folded with it stay exact.
 
     The fallback for sizes without a Hadamard construction is ``A`` a random orthogonal matrix, ``p = 1``.
     The buffers are float64 (cast to the input's dtype when applied) and not persistent: they are rebuilt from
@@ -121,6 +130,7 @@ class OnlineRotation(nn.Module):
             left, right = (f / math.sqrt(f.shape[0]) for f in factors)
         signs = torch.randint(0, 2, (size,), generator=gen, dtype=torch.float64) * 2 - 1
         self.size, self.seed = size, seed
+        self.hadamard = factors is not None
         self.register_buffer("signs", signs, persistent=False)
         self.register_buffer("left", left, persistent=False)
         self.register_buffer("right", right, persistent=False)
@@ -132,13 +142,17 @@ class OnlineRotation(nn.Module):
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         if x.shape[-1] != self.size:
             raise ValueError(f"OnlineRotation of size {self.size} got x of shape {tuple(x.shape)}")
+        if self.hadamard and x.dtype in _KERNEL_DTYPES:
+            return ops.hadamard_transform(x, self.signs.float(), self.left.float())
         m, p = self.left.shape[0], self.right.shape[0]
         y = (x * self.signs.to(x.dtype)).reshape(*x.shape[:-1], m, p)
         y = self.left.T.to(x.dtype) @ y @ self.right.to(x.dtype)
         return y.reshape(x.shape)
 
     def extra_repr(self) -> str:
-        return f"size={self.size}, factors=({self.left.shape[0]}, {self.right.shape[0]}), seed={self.seed}"
+        kind = "hadamard" if self.hadamard else "random orthogonal"
+        factors = f"({self.left.shape[0]}, {self.right.shape[0]})"
+        return f"size={self.size}, factors={factors}, {kind}, seed={self.seed}"
 
 
 # ---- folding into a Llama model ---------------------------------------------------------------------------
