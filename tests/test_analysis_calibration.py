@@ -80,10 +80,27 @@ def test_an_excursion_below_the_top_run_does_not_set_the_threshold():
     assert calibrate_thresholds(S_LEVELS, errors, 1.0, 0.0, bins=40).theta_2_4 == LEVELS[5]
 
 
-def test_a_width_over_the_bound_everywhere_gets_threshold_zero():
+def test_a_width_over_the_bound_everywhere_gets_no_rung():
     result = calibrate_thresholds(S_LEVELS, constant_errors(1.0, 0.0, 0.01, 0.55), 1.0, 0.0, bins=40)
-    assert result.theta_2_4 == 0.0 and result.status[2] == "over bound in every bin"
+    assert result.theta_2_4 is None and result.limits[2] == 0.0 and result.status[2] == "over bound in every bin"
     assert result.theta_4_8 == LEVELS[4]
+
+
+def test_two_and_four_bits_over_the_bound_everywhere_leave_only_the_8_bit_rung():
+    result = calibrate_thresholds(S_LEVELS, constant_errors(1.0, 0.0, 0.01, 0.01), 1.0, 0.0, bins=40)
+    assert result.theta_2_4 is None and result.theta_4_8 is None
+
+
+def test_a_dropped_rung_is_never_dispatched_even_at_zero_sensitivity(tmp_path):
+    # S_t = 0 (the arm holds still) lies in Eq. 6's [0, theta_2|4] even when theta_2|4 = 0.
+    config = write_config(tmp_path / "c.json", fusion_weight=0.0, delay_window=1, theta_2_4=None, theta_4_8=None,
+                          theta_fp=0.5)
+    assert [bits for _, bits in config.ladder] == [8]
+    still = np.zeros((60, 7))
+    still[:30] = random_actions(30, seed=3)  # warm the scale histories, then hold still
+    _, bits = dispatch_trace(still, config)
+    _, bits_with_zero_threshold = dispatch_trace(still, config.replace(ladder=((0.0, 2), (0.0, 4), (0.5, 8))))
+    assert 2 in bits_with_zero_threshold and 2 not in bits and 4 not in bits
 
 
 def test_theta_4_8_is_raised_to_theta_2_4():
@@ -100,7 +117,10 @@ def test_every_bin_above_a_limit_exceeds_the_bound_and_the_one_at_it_does_not(st
         above = result.bin_upper > result.limits[b]
         assert np.all(mean[above] > result.bound[above])
         assert np.all(mean[result.bin_upper == result.limits[b]] <= result.bound[result.bin_upper == result.limits[b]])
-    assert 0.0 <= result.theta_2_4 <= result.theta_4_8 <= S.max()
+    theta_2_4 = 0.0 if result.theta_2_4 is None else result.theta_2_4
+    theta_4_8 = theta_2_4 if result.theta_4_8 is None else result.theta_4_8
+    assert 0.0 <= theta_2_4 <= theta_4_8 <= S.max()
+    assert (result.theta_2_4 is None) == (result.status[2] == "over bound in every bin")
 
 
 @pytest.mark.parametrize("errors, match", [
@@ -235,6 +255,14 @@ def test_written_config_loads_in_the_dispatcher(tmp_path):
     keys = json.loads(path.read_text())
     assert {"lambda", "K", "theta_2|4", "theta_4|8", "theta_fp"} <= set(keys)
     assert not {"fusion_weight", "delay_window", "theta_2_4", "theta_4_8"} & set(keys)
+
+
+def test_written_config_without_a_2_bit_rung_writes_null_and_loads(tmp_path):
+    path = tmp_path / "dispatch.json"
+    written = write_config(path, fusion_weight=0.2, delay_window=8, theta_2_4=None, theta_4_8=0.19, theta_fp=18.3)
+    assert json.loads(path.read_text())["theta_2|4"] is None
+    loaded = dyq.DispatchConfig.load(path)
+    assert loaded == written and loaded.ladder == ((0.19, 4), (18.3, 8)) and math.isnan(loaded.theta_2_4)
 
 
 def test_written_config_clips_theta_to_theta_fp(tmp_path):

@@ -169,6 +169,17 @@ def test_a_file_written_before_the_ladder_loads_and_paper_configs_are_written_th
     assert config.to_dict() == old
 
 
+def test_a_theta_of_none_removes_that_rung_and_survives_json():
+    config = DispatchConfig(fusion_weight=0.2, theta_2_4=None, theta_4_8=0.2, theta_fp=0.4)
+    assert config.ladder == ((0.2, 4), (0.4, 8)) and config.is_paper_form
+    data = json.loads(json.dumps(config.to_dict()))
+    assert data["theta_2_4"] is None and DispatchConfig.from_dict(data) == config
+    assert DispatchConfig.from_dict({"lambda": 0.2, "theta_2|4": None, "theta_4|8": 0.2, "theta_fp": 0.4}) == config
+    assert config.replace(theta_2_4=None) == config  # removing a missing rung changes nothing
+    with pytest.raises(ValueError, match="theta_2_4 is the threshold of the 2-bit rung"):
+        config.replace(theta_2_4=0.1)
+
+
 def test_a_single_proxy_and_a_custom_ladder_survive_json():
     config = DispatchConfig(proxies=(ProxyWeight("angular_jerk", 1.0, 5),), ladder=((0.4, 4),))
     assert not config.is_paper_form and config.weight("motion_fineness") == 0.0

@@ -86,7 +86,10 @@ class ThresholdCalibration:
     """Result of :func:`calibrate_thresholds`.
 
     Attributes:
-        theta_2_4, theta_4_8: Theta; theta_4_8 is raised to theta_2_4 if the 4-bit limit is lower.
+        theta_2_4, theta_4_8: Theta; theta_4_8 is raised to theta_2_4 if the 4-bit limit is lower. None
+            when no step may run at that width (2 bits, or 2 and 4 bits, over the bound in every bin):
+            the dispatcher then has no such rung (``DispatchConfig(theta_2_4=None)``), since Eq. 6's
+            [0, theta] would still send S_t = 0 to it.
         limits: per width b, the S up to which b meets the bound (the crossing).
         status: per width, "crossing", "within bound in the top bin" (no crossing: the limit is
             the largest calibration S) or "over bound in every bin" (the limit is 0).
@@ -96,8 +99,8 @@ class ThresholdCalibration:
         count: steps per bin.
     """
 
-    theta_2_4: float
-    theta_4_8: float
+    theta_2_4: float | None
+    theta_4_8: float | None
     limits: dict[int, float]
     status: dict[int, str]
     bin_upper: np.ndarray
@@ -136,8 +139,10 @@ def calibrate_thresholds(sensitivity_state, errors_by_width, d_acc: float, eta: 
             limits[b], status[b] = float(upper[-1]), "within bound in the top bin"
         else:
             limits[b], status[b] = float(upper[passing[-1]]), "crossing"
+    too_coarse = {b for b, s in status.items() if s == "over bound in every bin"}
     return ThresholdCalibration(
-        theta_2_4=limits[2], theta_4_8=max(limits[4], limits[2]), limits=limits, status=status,
+        theta_2_4=None if 2 in too_coarse else limits[2],
+        theta_4_8=None if {2, 4} <= too_coarse else max(limits[4], limits[2]), limits=limits, status=status,
         bin_upper=upper, bound=bound, mean_error=mean_error, count=count,
     )
 
@@ -284,12 +289,13 @@ def choose_theta_fp(sweep: Sequence[tuple[float, float, float]], episodes: int, 
             "best_success_rate": best, "success_floor": floor}
 
 
-def write_config(path: str | os.PathLike, *, fusion_weight: float, delay_window: int, theta_2_4: float,
-                 theta_4_8: float, theta_fp: float, base=None) -> "dyq.DispatchConfig":
+def write_config(path: str | os.PathLike, *, fusion_weight: float, delay_window: int, theta_2_4: float | None,
+                 theta_4_8: float | None, theta_fp: float, base=None) -> "dyq.DispatchConfig":
     """Write the calibrated dispatcher config as JSON with the paper's symbols as keys ("lambda",
     "K", "theta_2|4", "theta_4|8", "theta_fp"; other fields from ``base``, default DispatchConfig()).
 
-    Theta is clipped to theta_fp: steps above theta_fp run at 16 anyway, so Eq. 6 is unchanged.
+    Theta is clipped to theta_fp: steps above theta_fp run at 16 anyway, so Eq. 6 is unchanged. A theta
+    of None (written as null) means the ladder has no rung of that width.
     The values are validated by ``dyq.DispatchConfig`` before the file is written; returns it.
     """
     data = _config(base).to_dict()
@@ -299,8 +305,8 @@ def write_config(path: str | os.PathLike, *, fusion_weight: float, delay_window:
     data.update({
         "lambda": fusion_weight,
         "K": delay_window,
-        "theta_2|4": min(_checks.real(theta_2_4, "theta_2_4", minimum=0.0), theta_fp),
-        "theta_4|8": min(_checks.real(theta_4_8, "theta_4_8", minimum=0.0), theta_fp),
+        "theta_2|4": None if theta_2_4 is None else min(_checks.real(theta_2_4, "theta_2_4", minimum=0.0), theta_fp),
+        "theta_4|8": None if theta_4_8 is None else min(_checks.real(theta_4_8, "theta_4_8", minimum=0.0), theta_fp),
         "theta_fp": theta_fp,
     })
     config = dyq.DispatchConfig.from_dict(data)

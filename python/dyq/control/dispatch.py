@@ -175,11 +175,16 @@ def _with_paper_values(proxies: tuple[ProxyWeight, ...], ladder: tuple[tuple[flo
     rungs = [list(rung) for rung in ladder]
     if {"theta_2_4", "theta_4_8", "theta_fp"} & set(values):
         for key, bits in (("theta_2_4", 2), ("theta_4_8", 4)):
-            if key in values:
-                rung = next((r for r in rungs if r[1] == bits), None)
-                if rung is None:
-                    raise ValueError(f"{key} is the threshold of the {bits}-bit rung, which the ladder does not have")
-                rung[0] = _check_real(values[key], key)
+            if key not in values:
+                continue
+            rung = next((r for r in rungs if r[1] == bits), None)
+            if values[key] is None:  # no rung of this width: no S_t maps to it, not even S_t = 0
+                if rung is not None:
+                    rungs.remove(rung)
+                continue
+            if rung is None:
+                raise ValueError(f"{key} is the threshold of the {bits}-bit rung, which the ladder does not have")
+            rung[0] = _check_real(values[key], key)
         if "theta_fp" in values:
             rungs[-1][0] = _check_real(values["theta_fp"], "theta_fp")
         if [bits for _, bits in rungs] == [2, 4, 8]:
@@ -216,6 +221,9 @@ class DispatchConfig:
     The paper's parameters are accepted as keywords (and by :meth:`replace`) and edit the two fields:
     ``fusion_weight`` (lambda), ``macro_window`` (W_macro), ``micro_window`` (W_micro) the proxies,
     ``theta_2_4``, ``theta_4_8`` (Theta) and ``theta_fp`` the ladder; they are readable as properties.
+    ``theta_2_4=None`` (or ``theta_4_8=None``) removes that width's rung: Eq. 6's interval [0, theta_2|4]
+    holds S_t = 0 even when theta_2|4 = 0, so a width that calibration finds too coarse everywhere is
+    dropped, not given a threshold of 0.
     """
 
     proxies: tuple[ProxyWeight, ...]
@@ -274,10 +282,12 @@ class DispatchConfig:
     @property
     def is_paper_form(self) -> bool:
         """Whether the config is the paper's: the (M, J) pair with weights (lambda, 1 - lambda) and the
-        rungs of 2, 4 and 8 bits, so that the paper's parameters describe it completely."""
+        rungs of 2, 4 and 8 bits, or of 8 bits and some of 2 and 4 (a missing rung's theta is None), so
+        that the paper's parameters describe it completely."""
         pair = tuple(p.name for p in self.proxies) == _PAPER_PAIR
+        bits = [b for _, b in self.ladder]
         return (pair and self.proxies[1].weight == 1.0 - self.proxies[0].weight
-                and [bits for _, bits in self.ladder] == [2, 4, 8])
+                and bits[-1] == 8 and set(bits) <= {2, 4, 8})
 
     @property
     def min_length(self) -> int:
@@ -295,8 +305,9 @@ class DispatchConfig:
         parameters (``fusion_weight``, ``theta_*``, the windows), as files were before the ladder."""
         out: dict[str, Any] = {}
         if self.is_paper_form:
-            out.update(fusion_weight=self.fusion_weight, theta_fp=self.theta_fp, theta_2_4=self.theta_2_4,
-                       theta_4_8=self.theta_4_8)
+            missing_as_none = lambda theta: None if math.isnan(theta) else theta  # noqa: E731
+            out.update(fusion_weight=self.fusion_weight, theta_fp=self.theta_fp,
+                       theta_2_4=missing_as_none(self.theta_2_4), theta_4_8=missing_as_none(self.theta_4_8))
         else:
             out.update(proxies=[dataclasses.asdict(p) for p in self.proxies], ladder=[list(r) for r in self.ladder])
         out["delay_window"] = self.delay_window

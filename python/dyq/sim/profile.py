@@ -71,6 +71,7 @@ FULL_PRECISION = 16
 QUANTIZED_WIDTHS = (2, 4, 8)
 DEFAULT_CACHE = Path(".cache/profile")
 RESULTS = Path("bench/results")
+RESULT_STEMS = {"profile": "profile", "calibrate": "calibration"}  # command -> its result file's stem
 FIGURES = Path("docs/figures")
 
 # The success tolerance of each task in the units of D_T (metres): the positional margin of the task's
@@ -427,6 +428,18 @@ def config_key(config: "dyq.DispatchConfig", prime=None) -> str:
     return h.hexdigest()[:12]
 
 
+def with_theta_fp(config: "dyq.DispatchConfig", theta_fp: float) -> "dyq.DispatchConfig":
+    """``config`` with theta_fp as its top threshold and every lower rung's threshold clipped to it
+    (steps above theta_fp run at 16 bits anyway); rungs the ladder lacks stay absent."""
+    lower = [(min(threshold, theta_fp), bits) for threshold, bits in config.ladder[:-1]]
+    return config.replace(ladder=lower + [(theta_fp, config.ladder[-1][1])])
+
+
+def _rung_threshold(theta: float) -> float | None:
+    """A DispatchConfig's theta (NaN for a rung it lacks) as write_config takes it (None)."""
+    return None if math.isnan(theta) else theta
+
+
 def sweep_theta_fp(runner: PolicyRunner, task: str, store: Store, base: "dyq.DispatchConfig",
                    grid: Sequence[float], seeds: Sequence[int], env=None, progress: bool = True) -> list[dict]:
     """Closed-loop DyQ episodes (``run_episode``, as ``dyq eval`` runs them) on ``seeds`` for each
@@ -436,8 +449,7 @@ def sweep_theta_fp(runner: PolicyRunner, task: str, store: Store, base: "dyq.Dis
     rows = []
     bar = _bar(len(grid) * len(seeds), f"{task} theta_fp sweep", progress)
     for theta_fp in grid:
-        config = base.replace(theta_2_4=min(base.theta_2_4, theta_fp), theta_4_8=min(base.theta_4_8, theta_fp),
-                              theta_fp=theta_fp)
+        config = with_theta_fp(base, theta_fp)
         kind = f"sweep/{config_key(config, _prime(runner))}"
         episodes = []
         for seed in seeds:
@@ -525,7 +537,7 @@ def calibrate(runner: PolicyRunner, task: str, store: Store, records: Sequence[P
     thresholds = calibrate_thresholds(S_warm, {b: np.concatenate([e[b][w] for e, w in zip(errors, warm)])
                                                for b in QUANTIZED_WIDTHS}, d_acc, eta)
     # theta_fp until the sweep: the 8-bit limit, where 8 bits stop meeting the bound.
-    ceiling = max(thresholds.limits[8], thresholds.theta_4_8)
+    ceiling = max(thresholds.limits[8], thresholds.theta_4_8 or 0.0)
     laddered = fused.replace(theta_2_4=thresholds.theta_2_4, theta_4_8=thresholds.theta_4_8, theta_fp=ceiling)
 
     # 4. K: the smallest delay that keeps downgrade errors rare.
@@ -540,8 +552,7 @@ def calibrate(runner: PolicyRunner, task: str, store: Store, records: Sequence[P
     knee = choose_theta_fp([(row["theta_fp"], row["success_rate"], row["mean_bits"]) for row in sweep],
                            len(sweep_seeds))
     theta_fp = knee["theta_fp"]
-    config = delayed.replace(theta_2_4=min(thresholds.theta_2_4, theta_fp),
-                             theta_4_8=min(thresholds.theta_4_8, theta_fp), theta_fp=theta_fp)
+    config = with_theta_fp(delayed, theta_fp)
     return {
         "references": found, "tried_seeds": tried, "profiled_seeds": profiled,
         "fusion_weight": fusion, "bound": bound, "thresholds": thresholds, "theta_fp_ceiling": ceiling,
@@ -592,7 +603,8 @@ def plot_thresholds(result: dict, title: str = ""):
         ax.plot(calibration.bin_upper, calibration.mean_error[bits], marker="o", label=f"mean e_t^({bits}) per bin")
     ax.plot(calibration.bin_upper, calibration.bound, color="k", lw=2, label="eps_a(S) at the bin's upper edge")
     for name, value, style in (("theta_2|4", calibration.theta_2_4, ":"), ("theta_4|8", calibration.theta_4_8, "--")):
-        ax.axvline(value, color="gray", linestyle=style, label=f"{name} = {value:.3g}")
+        if value is not None:  # None: no rung of that width
+            ax.axvline(value, color="gray", linestyle=style, label=f"{name} = {value:.3g}")
     ax.set(xlabel="S_t (bin upper edge)", ylabel="action error", yscale="log", title=title)
     ax.legend(fontsize=8)
     return fig
@@ -657,7 +669,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="policy checkpoint (default: the one that ships with dyq)")
     parser.add_argument("--cache", type=usage.output_dir, default=DEFAULT_CACHE)
     parser.add_argument("--out", type=usage.output_file(".json"),
-                        help=f"result JSON (default: {RESULTS}/{command}_<task>.json)")
+                        help=f"result JSON (default: {RESULTS}/{RESULT_STEMS[command]}_<task>.json)")
     parser.add_argument("--figures", type=usage.output_dir, default=FIGURES, help="folder for the PNG figures")
     parser.add_argument("--threads", type=usage.positive_int, default=1, help="torch threads")
     parser.add_argument("--no-progress", action="store_true")
@@ -736,7 +748,7 @@ def _run_profile(args, runner: PolicyRunner, store: Store, header: dict) -> int:
             "zero_error": result["zero_error"], "terminal_deviation": "final eef distance + final object distance (m)",
             "wall_s": round(time.perf_counter() - start, 1),
             "records": [dataclasses.asdict(r) for r in records]}
-    out = args.out or RESULTS / f"profile_{args.task}.json"
+    out = args.out or RESULTS / f"{RESULT_STEMS['profile']}_{args.task}.json"
     _write(out, data)
     figures = [_save(plot_perturbation_profile(records), args.figures / f"profile_{args.task}_fig2.png")]
     usable = [r for r in records if r.act_bits == main_width and r.action_error > 0 and math.isfinite(r.fused_sensitivity)]
@@ -769,7 +781,7 @@ def _fmt_ci(interval) -> str:
 
 def _read_profile(args, digest: str) -> tuple[Path, dict]:
     """The profile ``dyq calibrate`` starts from: it must exist and describe this checkpoint."""
-    profile_path = args.profile or RESULTS / f"profile_{args.task}.json"
+    profile_path = args.profile or RESULTS / f"{RESULT_STEMS['profile']}_{args.task}.json"
     if not profile_path.is_file():
         raise usage.UsageError(f"{profile_path} does not exist: run `dyq profile {args.task}` first")
     try:
@@ -794,7 +806,8 @@ def _run_calibrate(args, runner: PolicyRunner, store: Store, header: dict) -> in
     config_out = args.config_out or RESULTS / f"dispatch_{args.task}.json"
     config_out.parent.mkdir(parents=True, exist_ok=True)
     write_config(config_out, fusion_weight=config.fusion_weight, delay_window=config.delay_window,
-                 theta_2_4=config.theta_2_4, theta_4_8=config.theta_4_8, theta_fp=config.theta_fp)
+                 theta_2_4=_rung_threshold(config.theta_2_4), theta_4_8=_rung_threshold(config.theta_4_8),
+                 theta_fp=config.theta_fp)
     thresholds = result["thresholds"]
     data = {
         **header, "profile": str(profile_path), "config_file": str(config_out),
@@ -822,7 +835,7 @@ def _run_calibrate(args, runner: PolicyRunner, store: Store, header: dict) -> in
                              "of the best success rate"},
         "wall_s": round(time.perf_counter() - start, 1),
     }
-    out = args.out or RESULTS / f"calibration_{args.task}.json"
+    out = args.out or RESULTS / f"{RESULT_STEMS['calibrate']}_{args.task}.json"
     _write(out, data)
     figures = [_save(plot_thresholds(result, f"{args.task}: Theta"), args.figures / f"calibration_{args.task}_theta.png"),
                _save(plot_theta_fp_sweep(result, f"{args.task}: theta_fp sweep"),
