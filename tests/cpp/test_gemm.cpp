@@ -7,6 +7,7 @@
 #include <limits>
 #include <string>
 #include <tuple>
+#include <vector>
 
 #include "cpu/cpu_isa.h"
 #include "gemm/gemm_cpu.h"
@@ -228,5 +229,37 @@ TEST_P(GemmLargeTest, MatchesNaiveReference) {
 
 INSTANTIATE_TEST_SUITE_P(Shapes, GemmLargeTest,
                          ::testing::Combine(::testing::Values(2, 4, 8, 16), ::testing::Values(1, 2, 7, 33, 70)));
+
+// The largest codes of the format (q_x at 0 and 2^b - 1, z_x at either end, q_w at 7 and -8) in every row
+// of a group: the kernels' 16-bit partial sums must not saturate, and P stays exact.
+TEST_P(GemmEdgeTest, ExtremeCodesStayExact) {
+  const int act_bits = GetParam();
+  const int64_t n = 18, k = 256;
+  const int group_size = 128;
+  for (const int64_t m : {1, 3, 16, 19}) {
+    Inputs in;
+    in.x.resize(m * k);
+    for (int64_t r = 0; r < m; ++r) {
+      for (int64_t c = 0; c < k; ++c) {
+        const float sign = r % 3 == 0 ? 1.0f : r % 3 == 1 ? -1.0f : (c % 2 == 0 ? 1.0f : -1.0f);
+        in.x[r * k + c] = sign * 3.0f;
+      }
+    }
+    in.weight.codes.resize(n * k);
+    in.weight.scales.assign(n * 2, 0.5f);
+    for (int64_t j = 0; j < n; ++j) {
+      for (int64_t c = 0; c < k; ++c) in.weight.codes[j * k + c] = j % 2 == 0 ? 7 : -8;
+    }
+    in.qweight = naive::pack_weight(in.weight.codes);
+    const Problem p{m, n, k, group_size, act_bits, false, 0};
+    const auto ref = naive::gemm(in.x, in.weight, in.bias, m, n, k, group_size, act_bits);
+    for (const auto& impl : implementations()) {
+      std::vector<float> out(m * n);
+      impl.run(in.x.data(), ScalarType::kFloat32, in.qweight.data(), in.weight.scales.data(), nullptr, m, n, k,
+               group_size, act_bits, out.data());
+      expect_within_bound(out, ref, relative_bound(impl, p), impl.name + " m " + std::to_string(m));
+    }
+  }
+}
 
 }  // namespace
