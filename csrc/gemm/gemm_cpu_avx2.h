@@ -3,7 +3,7 @@
 // Packed weights are rows of K / 2 bytes, byte j holding column 2j in its low nibble and column 2j + 1 in
 // its high one, each a two's-complement code q_w in [-8, 7]. Two kinds of kernel read them:
 //
-// Row kernels (decode). The work is one stream over the packed
+// Row kernels, below kPanelMinRows activation rows (decode). The work is one stream over the packed
 // weights, so they spend as few instructions as they can per 32-byte load, keep several independent
 // accumulators (an FMA's latency is longer than the work between two of a chain's FMAs) and prefetch
 // the bytes kPrefetchBytes ahead, which, rows being adjacent, runs on into the next weight rows. Each
@@ -29,11 +29,21 @@
 //   in separate accumulators, and each group's partial sums are scaled once, the odd ones by s_w / 16
 //   (a power of two: the same sum, scaled exactly).
 //
-// Large M has no panel path here yet: the row kernels run on tiles of rows.
+// Panel path, from kPanelMinRows rows on (prefill). The weights of kPanelOutputs = 16 output rows are
+// decoded once per slice of columns into a small buffer that stays in L1 / L2 (IntWeightPanel,
+// Fp32WeightPanel) and reused by register-blocked micro-kernels over every activation row:
+// - act_bits 2/4/8: s8 codes, 4 consecutive columns of one output per int32 lane (8 outputs per
+//   vector), and 4 rows x 16 outputs of int32 accumulators. The u8 codes q_x of 4 columns are broadcast
+//   and vpmaddubsw'd with the s8 codes; four of those added in 16 bits stay below 4 * 2 * 255 * 8 <
+//   2^15, then one vpmaddwd with ones adds them into the accumulators. Per group P = sum q_x q_w -
+//   z_x sum q_w, the second term in fp32 (integers below 2^24: exact), scaled by s_x * s_w.
+// - act_bits 16: fp32 codes, one column of 16 outputs per two vectors, and 6 rows x 16 outputs of FMA
+//   accumulators, each group's partial sum scaled by s_w once.
 //
 // K need only be even. A row kernel reads a weight row's last, partial block or group from a padded
-// copy against activation codes or values of 0 past K, so the last group, which holds the remainder
-// when G does not divide K, sums only its own columns (docs/numerics.md, section 4).
+// copy against activation codes or values of 0 past K, and the panels decode the columns past K as
+// code 0, so the last group, which holds the remainder when G does not divide K, sums only its own
+// columns (docs/numerics.md, section 4).
 #pragma once
 
 #include <algorithm>
@@ -58,6 +68,7 @@ constexpr int64_t kBlockColumns = 64;     // columns in 32 bytes of packed weigh
 constexpr int64_t kChunkColumns = 16;     // act_bits 16: columns in 8 bytes of packed weights
 constexpr int kMaxTileRows = 4;           // activation rows that share one pass over a weight row
 constexpr int64_t kPrefetchBytes = 1024;  // how far ahead of its loads a row kernel prefetches
+constexpr int64_t kPanelMinRows = 8;      // from this many activation rows on, the panel path
 
 // ---- row kernels, act_bits 2/4/8 --------------------------------------------------------------------
 
@@ -269,10 +280,319 @@ void fp32_row_kernel(const uint8_t* weight_row, const float* scales_row, int64_t
 
 #include "gemm/gemm_cpu_row_tiles.inc"
 
+// ---- panel path ---------------------------------------------------------------------------------------
+
+constexpr int64_t kPanelOutputs = 16;  // weight rows (outputs) per panel: two vectors of 8
+
+// A vector's worth of bytes, as an element of std::vector (aligned by C++17's aligned new).
+struct alignas(32) VectorBytes {
+  uint8_t bytes[32];
+};
+
+// The 16 bytes (32 columns) of weight row `row` from `column` on; past n or k they read as 0.
+inline __m128i load_weight_chunk(const uint8_t* qweight, int64_t n, int64_t k, int64_t row, int64_t column) {
+  if (row >= n || column >= k) return _mm_setzero_si128();
+  const uint8_t* packed = qweight + row * (k / 2) + column / 2;
+  if (k - column >= 32) return _mm_loadu_si128(reinterpret_cast<const __m128i*>(packed));
+  alignas(16) uint8_t tail[16] = {};
+  std::memcpy(tail, packed, (k - column) / 2);
+  return _mm_load_si128(reinterpret_cast<const __m128i*>(tail));
+}
+
+// Loads 32 columns of 8 weight rows and transposes them as 16-bit words: on return words[q] holds, in
+// word o, the two bytes of output row_begin + o for columns column + 4q .. column + 4q + 3.
+inline void load_transposed_words(const uint8_t* qweight, int64_t n, int64_t k, int64_t row_begin, int64_t column,
+                                  __m128i words[8]) {
+  __m128i t[8], u[8];
+  for (int i = 0; i < 8; ++i) t[i] = load_weight_chunk(qweight, n, k, row_begin + i, column);
+  for (int i = 0; i < 4; ++i) {
+    u[2 * i] = _mm_unpacklo_epi16(t[2 * i], t[2 * i + 1]);
+    u[2 * i + 1] = _mm_unpackhi_epi16(t[2 * i], t[2 * i + 1]);
+  }
+  // u[0]: rows 0-1, words 0-3; u[1]: rows 0-1, words 4-7; u[2], u[3]: rows 2-3; ...
+  for (int i = 0; i < 2; ++i) {
+    t[4 * i + 0] = _mm_unpacklo_epi32(u[4 * i], u[4 * i + 2]);      // rows 4i..4i+3, words 0-1
+    t[4 * i + 1] = _mm_unpackhi_epi32(u[4 * i], u[4 * i + 2]);      // words 2-3
+    t[4 * i + 2] = _mm_unpacklo_epi32(u[4 * i + 1], u[4 * i + 3]);  // words 4-5
+    t[4 * i + 3] = _mm_unpackhi_epi32(u[4 * i + 1], u[4 * i + 3]);  // words 6-7
+  }
+  for (int j = 0; j < 4; ++j) {
+    words[2 * j] = _mm_unpacklo_epi64(t[j], t[4 + j]);
+    words[2 * j + 1] = _mm_unpackhi_epi64(t[j], t[4 + j]);
+  }
+}
+
+// act_bits 2/4/8: s8 codes of a panel's slice of columns; per group, each output's s_w and sum of codes.
+struct IntWeightPanel {
+  std::vector<VectorBytes> codes;  // [quad][half]: lane o of half h holds columns 4 quad..+3 of output 8h + o
+  std::vector<float> scales;       // [group][16]
+  std::vector<float> sums;         // [group][16]
+
+  void pack(const uint8_t* qweight, const float* all_scales, int64_t n, int64_t k, int group_size,
+            int64_t row_begin, int64_t col_begin, int64_t depth) {
+    const int64_t quads = depth / 4, panel_groups = depth / group_size;
+    codes.resize(quads * 2);
+    scales.resize(panel_groups * kPanelOutputs);
+    sums.resize(panel_groups * kPanelOutputs);
+    const __m128i low_nibbles = _mm_set1_epi8(0x0F);
+    const __m256i nibble_values =
+        _mm256_broadcastsi128_si256(_mm_setr_epi8(0, 1, 2, 3, 4, 5, 6, 7, -8, -7, -6, -5, -4, -3, -2, -1));
+    for (int half = 0; half < 2; ++half) {
+      for (int64_t c = 0; c < depth; c += 32) {
+        __m128i words[8];
+        load_transposed_words(qweight, n, k, row_begin + 8 * half, col_begin + c, words);
+        for (int q = 0; q < 8; ++q) {
+          // Each word's 4 nibbles in column order: low and high nibble of its first byte, then of its second.
+          const __m128i low = _mm_and_si128(words[q], low_nibbles);
+          const __m128i high = _mm_and_si128(_mm_srli_epi16(words[q], 4), low_nibbles);
+          const __m256i nibbles = _mm256_set_m128i(_mm_unpackhi_epi8(low, high), _mm_unpacklo_epi8(low, high));
+          _mm256_store_si256(reinterpret_cast<__m256i*>(codes[(c / 4 + q) * 2 + half].bytes),
+                             _mm256_shuffle_epi8(nibble_values, nibbles));
+        }
+      }
+    }
+    const int64_t quads_per_group = group_size / 4;
+    const int64_t first_group = col_begin / group_size, groups = group_count(k, group_size);
+    const __m256i ones_u8 = _mm256_set1_epi8(1), ones_s16 = _mm256_set1_epi16(1);
+    for (int64_t g = 0; g < panel_groups; ++g) {
+      for (int half = 0; half < 2; ++half) {
+        __m256i sum = _mm256_setzero_si256();
+        for (int64_t q = g * quads_per_group; q < (g + 1) * quads_per_group; ++q) {
+          const __m256i quad = _mm256_load_si256(reinterpret_cast<const __m256i*>(codes[q * 2 + half].bytes));
+          sum = _mm256_add_epi32(sum, _mm256_madd_epi16(_mm256_maddubs_epi16(ones_u8, quad), ones_s16));
+        }
+        _mm256_storeu_ps(&sums[g * kPanelOutputs + 8 * half], _mm256_cvtepi32_ps(sum));
+      }
+      for (int64_t j = 0; j < kPanelOutputs; ++j) {
+        const int64_t row = row_begin + j;
+        scales[g * kPanelOutputs + j] = row < n ? all_scales[row * groups + first_group + g] : 0.0f;
+      }
+    }
+  }
+};
+
+// act_bits 2/4/8 panel operand: q_x per row (zero past k), s_x and z_x per group.
+struct PanelCodes {
+  std::vector<uint8_t> codes;  // [m][group_padded(k)]
+  std::vector<float> scales;   // [m][groups]
+  std::vector<float> zeros;    // [m][groups]
+  int64_t pitch = 0, groups = 0;
+};
+
+template <typename Element>
+PanelCodes panel_codes(const Element* x, int64_t m, int64_t k, int group_size, int act_bits) {
+  PanelCodes out;
+  out.pitch = group_padded(k, group_size);
+  out.groups = group_count(k, group_size);
+  out.codes.assign(m * out.pitch, 0);
+  out.scales.resize(m * out.groups);
+  out.zeros.resize(m * out.groups);
+  parallel_for(0, m, 4, [&](int64_t row_begin, int64_t row_end) {
+    std::vector<float> row(k);
+    std::vector<ActivationGroupParams> params(out.groups);
+    for (int64_t r = row_begin; r < row_end; ++r) {
+      quantize_activation_row(x + r * k, k, group_size, act_bits, row.data(), out.codes.data() + r * out.pitch,
+                              params.data());
+      for (int64_t g = 0; g < out.groups; ++g) {
+        out.scales[r * out.groups + g] = params[g].scale;
+        out.zeros[r * out.groups + g] = static_cast<float>(params[g].zero);
+      }
+    }
+  });
+  return out;
+}
+
+struct IntPanelRow {
+  const uint8_t* codes;
+  const float* scales;
+  const float* zeros;
+};
+
+inline __m256i broadcast_quad(const uint8_t* codes) {
+  int32_t quad;
+  std::memcpy(&quad, codes, 4);
+  return _mm256_set1_epi32(quad);
+}
+
+// totals[r][0..16) += the slice's contribution for activation rows rows[0..kRows), each at the slice's
+// first column and group.
+template <int kRows>
+void int_panel_kernel(const IntWeightPanel& panel, const IntPanelRow* rows, int64_t depth, int group_size,
+                      float* totals) {
+  const __m256i ones = _mm256_set1_epi16(1);
+  const int64_t quads_per_group = group_size / 4;
+  const auto* codes = reinterpret_cast<const __m256i*>(panel.codes.data());
+  for (int64_t g = 0; g < depth / group_size; ++g) {
+    __m256i acc[kRows][2];
+    for (int r = 0; r < kRows; ++r) acc[r][0] = acc[r][1] = _mm256_setzero_si256();
+    for (int64_t q = g * quads_per_group; q < (g + 1) * quads_per_group; q += 4) {
+      const __m256i* w = codes + 2 * q;  // w[2 j + h]: quad q + j, outputs 8h..8h+7
+      for (int r = 0; r < kRows; ++r) {
+        const uint8_t* x = rows[r].codes + 4 * q;
+        const __m256i a0 = broadcast_quad(x), a1 = broadcast_quad(x + 4), a2 = broadcast_quad(x + 8),
+                      a3 = broadcast_quad(x + 12);
+        for (int h = 0; h < 2; ++h) {
+          // Four quads summed in 16 bits: at most 4 * 2 * 255 * 8 = 16320.
+          const __m256i pairs =
+              _mm256_add_epi16(_mm256_add_epi16(_mm256_maddubs_epi16(a0, w[h]), _mm256_maddubs_epi16(a1, w[2 + h])),
+                               _mm256_add_epi16(_mm256_maddubs_epi16(a2, w[4 + h]), _mm256_maddubs_epi16(a3, w[6 + h])));
+          acc[r][h] = _mm256_add_epi32(acc[r][h], _mm256_madd_epi16(pairs, ones));
+        }
+      }
+    }
+    // The totals stay in memory: registers for them would make the compiler spill the inner loop.
+    for (int h = 0; h < 2; ++h) {
+      const __m256 weight_scales = _mm256_loadu_ps(&panel.scales[g * kPanelOutputs + 8 * h]);
+      const __m256 weight_sums = _mm256_loadu_ps(&panel.sums[g * kPanelOutputs + 8 * h]);
+      for (int r = 0; r < kRows; ++r) {
+        // P = sum q_x q_w - z_x sum q_w, exact in fp32 (integers below 2^24).
+        const __m256 partial =
+            _mm256_fnmadd_ps(weight_sums, _mm256_broadcast_ss(rows[r].zeros + g), _mm256_cvtepi32_ps(acc[r][h]));
+        float* total = totals + r * kPanelOutputs + 8 * h;
+        _mm256_storeu_ps(total, _mm256_fmadd_ps(partial, _mm256_mul_ps(weight_scales, _mm256_broadcast_ss(rows[r].scales + g)),
+                                                _mm256_loadu_ps(total)));
+      }
+    }
+  }
+}
+
+struct IntPanel {
+  using WeightPanel = IntWeightPanel;
+  using Row = IntPanelRow;
+  static constexpr int kTileRows = 4;
+  static constexpr int64_t kDepth = 1024;  // columns per decoded slice: 16 KB of codes
+  static Row advance(Row row, int64_t column, int64_t group) {
+    return {row.codes + column, row.scales + group, row.zeros + group};
+  }
+  template <int kRows>
+  static void kernel(const WeightPanel& panel, const Row* rows, int64_t depth, int group_size, float* totals) {
+    int_panel_kernel<kRows>(panel, rows, depth, group_size, totals);
+  }
+};
+
+// act_bits 16: fp32 codes of a panel's slice of columns; each output's s_w per group.
+struct Fp32WeightPanel {
+  std::vector<VectorBytes> codes;  // [column][half]: lane o of half h is output 8h + o
+  std::vector<float> scales;       // [group][16]
+
+  void pack(const uint8_t* qweight, const float* all_scales, int64_t n, int64_t k, int group_size,
+            int64_t row_begin, int64_t col_begin, int64_t depth) {
+    const int64_t panel_groups = depth / group_size;
+    codes.resize(depth * 2);
+    scales.resize(panel_groups * kPanelOutputs);
+    for (int half = 0; half < 2; ++half) {
+      for (int64_t c = 0; c < depth; c += 32) {
+        __m128i words[8];
+        load_transposed_words(qweight, n, k, row_begin + 8 * half, col_begin + c, words);
+        for (int q = 0; q < 8; ++q) {
+          const __m256i lanes = _mm256_cvtepu16_epi32(words[q]);
+          for (int j = 0; j < 4; ++j) {  // nibble j of the word is column 4q + j: to the top, then back down
+            const __m256i code = _mm256_srai_epi32(_mm256_slli_epi32(lanes, 28 - 4 * j), 28);
+            _mm256_store_ps(reinterpret_cast<float*>(codes[(c + 4 * q + j) * 2 + half].bytes), _mm256_cvtepi32_ps(code));
+          }
+        }
+      }
+    }
+    const int64_t first_group = col_begin / group_size, groups = group_count(k, group_size);
+    for (int64_t g = 0; g < panel_groups; ++g) {
+      for (int64_t j = 0; j < kPanelOutputs; ++j) {
+        const int64_t row = row_begin + j;
+        scales[g * kPanelOutputs + j] = row < n ? all_scales[row * groups + first_group + g] : 0.0f;
+      }
+    }
+  }
+};
+
+template <int kRows>
+void fp32_panel_kernel(const Fp32WeightPanel& panel, const float* const* rows, int64_t depth, int group_size,
+                       float* totals) {
+  const auto* codes = reinterpret_cast<const float*>(panel.codes.data());
+  for (int64_t g = 0; g < depth / group_size; ++g) {
+    __m256 acc[kRows][2];
+    for (int r = 0; r < kRows; ++r) acc[r][0] = acc[r][1] = _mm256_setzero_ps();
+    for (int64_t c = g * group_size; c < (g + 1) * group_size; ++c) {
+      const __m256 low = _mm256_load_ps(codes + 16 * c), high = _mm256_load_ps(codes + 16 * c + 8);
+      for (int r = 0; r < kRows; ++r) {
+        const __m256 x = _mm256_broadcast_ss(rows[r] + c);
+        acc[r][0] = _mm256_fmadd_ps(x, low, acc[r][0]);
+        acc[r][1] = _mm256_fmadd_ps(x, high, acc[r][1]);
+      }
+    }
+    for (int h = 0; h < 2; ++h) {
+      const __m256 weight_scales = _mm256_loadu_ps(&panel.scales[g * kPanelOutputs + 8 * h]);
+      for (int r = 0; r < kRows; ++r) {
+        float* total = totals + r * kPanelOutputs + 8 * h;
+        _mm256_storeu_ps(total, _mm256_fmadd_ps(acc[r][h], weight_scales, _mm256_loadu_ps(total)));
+      }
+    }
+  }
+}
+
+struct Fp32Panel {
+  using WeightPanel = Fp32WeightPanel;
+  using Row = const float*;
+  static constexpr int kTileRows = 6;
+  static constexpr int64_t kDepth = 256;  // columns per decoded slice: 16 KB of codes
+  static Row advance(Row row, int64_t column, int64_t) { return row + column; }
+  template <int kRows>
+  static void kernel(const WeightPanel& panel, const Row* rows, int64_t depth, int group_size, float* totals) {
+    fp32_panel_kernel<kRows>(panel, rows, depth, group_size, totals);
+  }
+};
+
+// Threads split the panels; each decodes a panel's slice of columns once and runs it against every
+// activation row. Slices are whole groups (Kind::kDepth is a multiple of every group size).
+template <typename Kind, typename Element, typename ActivationRow>
+void run_panels(ActivationRow&& activation_row, const uint8_t* qweight, const float* scales, const Element* bias,
+                int64_t m, int64_t n, int64_t k, int group_size, Element* out) {
+  const int64_t panels = (n + kPanelOutputs - 1) / kPanelOutputs;
+  const int64_t padded = group_padded(k, group_size);
+  parallel_for(0, panels, 1, [&](int64_t panel_begin, int64_t panel_end) {
+    typename Kind::WeightPanel panel;
+    std::vector<float> totals(m * kPanelOutputs);  // [m][16]
+    std::vector<typename Kind::Row> rows(m);
+    for (int64_t p = panel_begin; p < panel_end; ++p) {
+      const int64_t row_begin = p * kPanelOutputs;
+      std::fill(totals.begin(), totals.end(), 0.0f);
+      for (int64_t col = 0; col < padded; col += Kind::kDepth) {
+        const int64_t depth = std::min(Kind::kDepth, padded - col);
+        panel.pack(qweight, scales, n, k, group_size, row_begin, col, depth);
+        for (int64_t r = 0; r < m; ++r) rows[r] = Kind::advance(activation_row(r), col, col / group_size);
+        for (int64_t r = 0; r < m; r += Kind::kTileRows) {
+          dispatch_tile_rows<Kind::kTileRows>(static_cast<int>(std::min<int64_t>(Kind::kTileRows, m - r)),
+                                              [&](auto tile_rows) {
+                                                Kind::template kernel<decltype(tile_rows)::value>(
+                                                    panel, rows.data() + r, depth, group_size,
+                                                    totals.data() + r * kPanelOutputs);
+                                              });
+        }
+      }
+      const int64_t outputs = std::min(kPanelOutputs, n - row_begin);
+      for (int64_t r = 0; r < m; ++r) {
+        for (int64_t j = 0; j < outputs; ++j) {
+          const float bias_value = bias != nullptr ? to_float(bias[row_begin + j]) : 0.0f;
+          out[r * n + row_begin + j] = from_float<Element>(totals[r * kPanelOutputs + j] + bias_value);
+        }
+      }
+    }
+  });
+}
+
 template <int kBits, typename Element>
 void gemm_typed(const Element* x, const uint8_t* qweight, const float* scales, const Element* bias, int64_t m,
                 int64_t n, int64_t k, int group_size, Element* out) {
   if constexpr (ActivationTraits<kBits>::kQuantized) {
+    if (m >= kPanelMinRows) {
+      const PanelCodes activations = panel_codes(x, m, k, group_size, kBits);
+      run_panels<IntPanel>(
+          [&](int64_t r) {
+            return IntPanelRow{activations.codes.data() + r * activations.pitch,
+                               activations.scales.data() + r * activations.groups,
+                               activations.zeros.data() + r * activations.groups};
+          },
+          qweight, scales, bias, m, n, k, group_size, out);
+      return;
+    }
     const int64_t blocks = (k + kBlockColumns - 1) / kBlockColumns;
     const std::vector<DecodeBlock> activations = decode_activations(x, m, k, group_size, kBits);
     run_tiles<kMaxTileRows>(
@@ -283,6 +603,15 @@ void gemm_typed(const Element* x, const uint8_t* qweight, const float* scales, c
         });
   } else {
     const int64_t pitch = group_padded(k, group_size);
+    if (m >= kPanelMinRows) {
+      std::vector<float> activations(m * pitch, 0.0f);
+      parallel_for(0, m, 16, [&](int64_t row_begin, int64_t row_end) {
+        for (int64_t r = row_begin; r < row_end; ++r) load_row_fp32(x + r * k, k, activations.data() + r * pitch);
+      });
+      run_panels<Fp32Panel>([&](int64_t r) { return static_cast<const float*>(activations.data() + r * pitch); },
+                            qweight, scales, bias, m, n, k, group_size, out);
+      return;
+    }
     const std::vector<float> activations = deinterleave_activations(x, m, k, group_size);
     run_tiles<kMaxTileRows>(
         qweight, scales, bias, m, n, k, group_size, out, [&](int64_t r) { return activations.data() + r * pitch; },
@@ -292,8 +621,10 @@ void gemm_typed(const Element* x, const uint8_t* qweight, const float* scales, c
   }
 }
 
-inline const char* gemm_kernel(int64_t, int64_t, int, int act_bits) {
-  return act_bits == kFallbackBits ? "avx2/rows-fp32" : "avx2/rows-maddubs";
+inline const char* gemm_kernel(int64_t m, int64_t, int, int act_bits) {
+  const bool panel = m >= kPanelMinRows;
+  if (act_bits == kFallbackBits) return panel ? "avx2/panel-fp32" : "avx2/rows-fp32";
+  return panel ? "avx2/panel-maddubs" : "avx2/rows-maddubs";
 }
 
 }  // namespace dyq::cpu::avx2
