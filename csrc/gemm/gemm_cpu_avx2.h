@@ -255,7 +255,9 @@ void fp32_row_kernel(const uint8_t* weight_row, const float* scales_row, int64_t
       for (int c = 0; c < kChains; ++c) acc[r][c] = _mm256_setzero_ps();
     }
     for (int64_t c = 0; c < group_size; c += 2 * kChunkColumns) {
-      _mm_prefetch(reinterpret_cast<const char*>(weight_row + (first + c) / 2 + kPrefetchBytes), _MM_HINT_T0);
+      if ((first + c) % 128 == 0) {  // once per 64-byte line
+        _mm_prefetch(reinterpret_cast<const char*>(weight_row + (first + c) / 2 + kPrefetchBytes), _MM_HINT_T0);
+      }
       __m256 w[4];
       fp32_weight_codes(packed + c / 2, w[0], w[1]);
       fp32_weight_codes(packed + c / 2 + 8, w[2], w[3]);
