@@ -11,7 +11,7 @@ its weights from memory). The same run measures the machine's streaming-read ban
 the bytes of its packed weights and scales over the median time.
 
 Prints the tables and writes bench/results/linear_cpu.json (device, CPU flags, versions, threads, shapes,
-medians and the kernel each dyq call ran).
+medians, the kernel each dyq call ran and the load average before and after each thread count's run).
 
     python bench/bench_linear.py                        # Llama-7B and policy shapes, 1 and 2 threads
     python bench/bench_linear.py --quick                # one shape, M = 1 and 16, for a smoke run
@@ -24,6 +24,7 @@ import argparse
 import copy
 import json
 import math
+import os
 import warnings
 from pathlib import Path
 
@@ -224,11 +225,15 @@ def main() -> None:
     runs = []
     for threads in args.threads:
         torch.set_num_threads(threads)
+        load_before = os.getloadavg()
         stream_gbps = stream_read_gbps(args.repeats)
         results = [r for n, k in shapes for r in time_shape(n, k, batches, args.modes, args.repeats, cache_bytes)]
         print_results(threads, stream_gbps, results)
+        load_after = os.getloadavg()
+        print(f"load average (1, 5, 15 min): {load_before} before, {load_after} after")
+        # The machine may be shared: the load average around the run says how busy it was.
         runs.append({"threads": threads, "stream_read_gbps": stream_gbps, "stream_bytes": STREAM_BYTES,
-                     "results": results})
+                     "load_average_before": load_before, "load_average_after": load_after, "results": results})
     payload = {"benchmark": "linear_cpu", "environment": {**environment(), "cpu_flags": cpu_flags(),
                                                           "last_level_cache_bytes": cache_bytes,
                                                           "dyq_cpu_paths": dyq.cpu_info()["runnable"]},

@@ -16,6 +16,7 @@ from __future__ import annotations
 import argparse
 import copy
 import json
+import os
 import time
 from pathlib import Path
 
@@ -126,6 +127,7 @@ def main() -> None:
     parser.add_argument("--out", default="policy_step_cpu.json")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
+    load_before = os.getloadavg()
     results = [time_config(name, args.prompt or DEFAULT_PROMPT[name], args.repeats)
                for name in args.config or ["policy", "0.5b"]]
     labels = ["fp32", "bf16"] + [f"w4a{b}" for b in BITS]
@@ -139,8 +141,11 @@ def main() -> None:
                          "" if share is None else f"{100 * share:.0f} %"])
     print_table(["config", "prompt", "model", "step ms", "prefill ms", "decode ms", "bf16 / this", "in dyq GEMMs"],
                 rows, title=f"One control step (prefill + {ACTION_TOKENS} decoded tokens), {args.threads} thread(s)")
+    load_after = os.getloadavg()
+    print(f"load average (1, 5, 15 min): {load_before} before, {load_after} after")
     path = write_json(args.out, {"benchmark": "policy_step_cpu", "environment": environment(),
-                                 "threads": args.threads, "results": results})
+                                 "threads": args.threads, "load_average_before": load_before,
+                                 "load_average_after": load_after, "results": results})
     print(f"\nwrote {path}")
 
 

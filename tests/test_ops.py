@@ -262,3 +262,35 @@ def test_activations_near_the_fp32_range_give_the_reference_answer(act_bits, mag
         _, act_scales, _ = dyq.ops.quantize_activations(x, 64, act_bits)
         assert torch.isfinite(act_scales).all()
         assert torch.equal(act_scales, reference.quantize_activations(x, 64, act_bits)[1])
+
+
+# Rows on either side of the CPU's switch from the row kernels (decode) to the panel path (8 on the AVX2
+# and AVX-512 paths; dyq.cpu_gemm_kernel names the kernel of a call).
+PANEL_THRESHOLD_ROWS = (1, 3, 7, 8, 9, 15, 16, 17, 31)
+
+
+@pytest.mark.parametrize("act_bits", ACT_BITS)
+@pytest.mark.parametrize("group_size", GROUP_SIZES)
+def test_gemm_around_the_panel_threshold_matches_reference(act_bits, group_size, rng):
+    """N not a multiple of the panels' 16 outputs, K not a multiple of the group size, fresh inputs per M."""
+    n, k = 16 * 3 + 5, 4 * group_size + 34
+    for m in PANEL_THRESHOLD_ROWS:
+        qweight, scales = dyq.ops.quantize_weight(random_weight(n, k, rng), group_size)
+        x = random_activations((m, k), rng)
+        bias = torch.randn(n, generator=rng)
+        assert_gemm_close(dyq.ops.gemm(x, qweight, scales, group_size, act_bits, bias), x, qweight, scales,
+                          group_size, act_bits, bias)
+
+
+@pytest.mark.parametrize("act_bits", ACT_BITS)
+@pytest.mark.parametrize("threads", (1, 2, 3))
+def test_gemm_matches_reference_at_every_thread_count(act_bits, threads, rng):
+    previous = torch.get_num_threads()
+    torch.set_num_threads(threads)
+    try:
+        for m in (1, 5, 16, 40):
+            qweight, scales = dyq.ops.quantize_weight(random_weight(83, 640, rng), 128)
+            x = random_activations((m, 640), rng, torch.bfloat16)
+            assert_gemm_close(dyq.ops.gemm(x, qweight, scales, 128, act_bits), x, qweight, scales, 128, act_bits)
+    finally:
+        torch.set_num_threads(previous)

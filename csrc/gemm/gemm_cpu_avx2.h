@@ -1,22 +1,49 @@
 // The AVX2 GEMM behind dyq::cpu::gemm on x86-64 CPUs without AVX-512 VNNI (docs/numerics.md, section 3).
 //
-// The row kernels of gemm_cpu_avx512.h at half the width and without VNNI. Both stream each packed
-// weight row once per tile of up to 4 activation rows (16 ymm registers) and never materialize unpacked
-// weights in memory:
-// - act_bits 2/4/8: a 32-byte load holds 64 columns of one weight row; its low and high nibbles are the
-//   even and the odd columns as s8 codes, and the activation codes are stored in the same even/odd order
-//   (QuantizedBlock). vpmaddubsw (u8 q_x times s8 q_w, adjacent pairs summed to s16) of the even and of
-//   the odd half, added, hold sums of 4 columns, at most 4 * 255 * 8 < 2^15, so nothing saturates;
-//   vpmaddwd with ones then gives exact int32 sums of 8 columns per lane. Lane i covers columns
-//   8i..8i+7, in one group for every group size, and carries its group's s_x, s_w and z_x; the zero-point
-//   term z_x * sum(q_w) is subtracted in fp32, exact because both are integers below 2^24.
-// - act_bits 16: 8 packed bytes (16 columns) are widened to int32 lanes, each nibble n sign-extended as
-//   (n ^ 8) - 8 and converted to fp32; x is stored as even/odd halves per 16 columns to match, and each
-//   group's fp32 partial sum is scaled by s_w once.
-// Large M has no panel path here (the AVX-512 one is built on VNNI and 32 registers).
-// K need only be even: the bytes of a row's last, partial block or chunk past K read as code 0 (as do the
-// activation codes there), so the last group, which holds the remainder when G does not divide K, sums
-// only its own columns (docs/numerics.md, section 4).
+// Packed weights are rows of K / 2 bytes, byte j holding column 2j in its low nibble and column 2j + 1 in
+// its high one, each a two's-complement code q_w in [-8, 7]. Two kinds of kernel read them:
+//
+// Row kernels, below kPanelMinRows activation rows (decode). The work is one stream over the packed
+// weights, so they spend as few instructions as they can per 32-byte load, keep several independent
+// accumulators (an FMA's latency is longer than the work between two of a chain's FMAs) and prefetch
+// the bytes kPrefetchBytes ahead, which, rows being adjacent, runs on into the next weight rows. Each
+// weight row is read once per tile of up to kMaxTileRows activation rows (run_tiles, rows-per-block
+// loop in gemm_cpu_row_tiles.inc).
+// - act_bits 2/4/8: a 32-byte load holds 64 columns. The codes are read offset by 8, u = q_w + 8 =
+//   nibble XOR 8 in [0, 15], which needs no sign-extending lookup: one XOR per load, then a mask and a
+//   shift give the even and the odd columns' u as bytes. The activations are stored in the same
+//   even/odd order (DecodeBlock); vpmaddubsw of the even and of the odd half, added, hold exact sums of 4
+//   columns per 16-bit lane, and vpmaddwd with ones sums them to 8 columns per int32 lane: lane i covers
+//   columns 8i..8i+7, which lie in one group for every group size. At act_bits 2/4 the activations are
+//   stored centred, a = q_x - z_x in [-15, 15] (the s8 operand; u is the u8 one, sums at most
+//   2 * 2 * 15 * 15); at act_bits 8 q_x must be the u8 operand and u takes the s8 one, and
+//   z_x * sum(u), one more vpmaddubsw with z_x in every byte, is subtracted in 16 bits (each term at most
+//   2 * 2 * 255 * 15 = 15300, so nothing saturates). The offset comes back as -8 * sum(q_x - z_x) over
+//   the lane's columns, an integer of the activations alone that starts the lane's sum, so that the
+//   lane holds exactly P of docs/numerics.md; it is converted to fp32 and multiplied by s_x * s_w.
+// - act_bits 16: 8 packed bytes (16 columns) are widened to int32 lanes and turned into exact fp32
+//   codes without a conversion: XOR-ing 0x4B000088 into a lane sets the exponent of 2^23 above the two
+//   offset codes u, so masking with 0x4B00000F gives the float 2^23 + u_even and with 0x4B0000F0 the
+//   float 2^23 + 16 u_odd, and subtracting 2^23 + 8 (2^23 + 128) leaves q_w (16 q_w) exactly. x is
+//   stored as the 8 even then the 8 odd columns of every 16 to match; the even and the odd columns sum
+//   in separate accumulators, and each group's partial sums are scaled once, the odd ones by s_w / 16
+//   (a power of two: the same sum, scaled exactly).
+//
+// Panel path, from kPanelMinRows rows on (prefill). The weights of kPanelOutputs = 16 output rows are
+// decoded once per slice of columns into a small buffer that stays in L1 / L2 (IntWeightPanel,
+// Fp32WeightPanel) and reused by register-blocked micro-kernels over every activation row:
+// - act_bits 2/4/8: s8 codes, 4 consecutive columns of one output per int32 lane (8 outputs per
+//   vector), and 4 rows x 16 outputs of int32 accumulators. The u8 codes q_x of 4 columns are broadcast
+//   and vpmaddubsw'd with the s8 codes; four of those added in 16 bits stay below 4 * 2 * 255 * 8 <
+//   2^15, then one vpmaddwd with ones adds them into the accumulators. Per group P = sum q_x q_w -
+//   z_x sum q_w, the second term in fp32 (integers below 2^24: exact), scaled by s_x * s_w.
+// - act_bits 16: fp32 codes, one column of 16 outputs per two vectors, and 6 rows x 16 outputs of FMA
+//   accumulators, each group's partial sum scaled by s_w once.
+//
+// K need only be even. A row kernel reads a weight row's last, partial block or group from a padded
+// copy against activation codes or values of 0 past K, and the panels decode the columns past K as
+// code 0, so the last group, which holds the remainder when G does not divide K, sums only its own
+// columns (docs/numerics.md, section 4).
 #pragma once
 
 #include <algorithm>
@@ -37,42 +64,55 @@
 DYQ_ISA_BEGIN
 namespace dyq::cpu::avx2 {
 
-constexpr int64_t kBlockColumns = 64;  // columns in 32 bytes of packed weights
-constexpr int64_t kChunkColumns = 16;  // act_bits 16: columns in 8 bytes of packed weights
-constexpr int kMaxTileRows = 4;        // activation rows that share one pass over a weight row
+constexpr int64_t kBlockColumns = 64;     // columns in 32 bytes of packed weights
+constexpr int64_t kChunkColumns = 16;     // act_bits 16: columns in 8 bytes of packed weights
+constexpr int kMaxTileRows = 4;           // activation rows that share one pass over a weight row
+constexpr int64_t kPrefetchBytes = 1024;  // how far ahead of its loads a row kernel prefetches
+constexpr int64_t kPanelMinRows = 8;      // from this many activation rows on, the panel path
 
-// 64 columns of one activation row, in the lane order of the act_bits 2/4/8 kernel.
-struct alignas(32) QuantizedBlock {
-  uint8_t even_codes[32];  // q_x of columns 0, 2, ..., 62
-  uint8_t odd_codes[32];   // q_x of columns 1, 3, ..., 63
-  float zero_lanes[8];     // z_x of the group of columns 8i..8i+7 (0 past k)
-  float scale_lanes[8];    // s_x of that group (0 past k)
+// ---- row kernels, act_bits 2/4/8 --------------------------------------------------------------------
+
+// 64 columns of one activation row for the integer row kernel.
+struct alignas(32) DecodeBlock {
+  uint8_t even_codes[32];  // columns 0, 2, ..., 62: a = q_x - z_x as s8 (act_bits 2/4) or q_x (act_bits 8)
+  uint8_t odd_codes[32];   // columns 1, 3, ..., 63
+  uint32_t zero_bytes[8];  // act_bits 8: z_x of lane i's group in each byte (0 past k)
+  int32_t offsets[8];      // -8 * sum of (q_x - z_x) over lane i's columns 8i..8i+7 (0 past k)
+  float scale_lanes[8];    // s_x of lane i's group (0 past k)
 };
 
-// Activations quantized into QuantizedBlocks, ceil(k / 64) per row (the last one zero-padded).
+// Activations quantized into DecodeBlocks, ceil(k / 64) per row (zero past k).
 template <typename Element>
-std::vector<QuantizedBlock> quantize_activation_blocks(const Element* x, int64_t m, int64_t k, int group_size,
-                                                       int act_bits) {
+std::vector<DecodeBlock> decode_activations(const Element* x, int64_t m, int64_t k, int group_size, int act_bits) {
   const int64_t blocks = (k + kBlockColumns - 1) / kBlockColumns;
-  std::vector<QuantizedBlock> quantized(m * blocks);
+  const bool centred = act_bits != 8;
+  std::vector<DecodeBlock> quantized(m * blocks);
   parallel_for(0, m, 4, [&](int64_t row_begin, int64_t row_end) {
     std::vector<float> row(k);
-    std::vector<uint8_t> codes(blocks * kBlockColumns, 0);
+    std::vector<uint8_t> codes(k);
     std::vector<ActivationGroupParams> params(group_count(k, group_size));
     for (int64_t r = row_begin; r < row_end; ++r) {
       quantize_activation_row(x + r * k, k, group_size, act_bits, row.data(), codes.data(), params.data());
+      auto value = [&](int64_t column) {  // the stored code of a column: 0 past k
+        if (column >= k) return 0;
+        return centred ? codes[column] - params[column / group_size].zero : int{codes[column]};
+      };
       for (int64_t t = 0; t < blocks; ++t) {
-        QuantizedBlock& block = quantized[r * blocks + t];
-        const uint8_t* block_codes = codes.data() + t * kBlockColumns;
+        DecodeBlock& block = quantized[r * blocks + t];
+        const int64_t first = t * kBlockColumns;
         for (int j = 0; j < 32; ++j) {
-          block.even_codes[j] = block_codes[2 * j];
-          block.odd_codes[j] = block_codes[2 * j + 1];
+          block.even_codes[j] = static_cast<uint8_t>(value(first + 2 * j));
+          block.odd_codes[j] = static_cast<uint8_t>(value(first + 2 * j + 1));
         }
         for (int lane = 0; lane < 8; ++lane) {
-          const int64_t column = t * kBlockColumns + 8 * lane;
-          const bool inside = column < k;
-          block.zero_lanes[lane] = inside ? static_cast<float>(params[column / group_size].zero) : 0.0f;
-          block.scale_lanes[lane] = inside ? params[column / group_size].scale : 0.0f;
+          const int64_t begin = first + 8 * lane, end = std::min(begin + 8, k);
+          const bool inside = begin < k;
+          const int zero = inside ? params[begin / group_size].zero : 0;
+          int32_t sum = 0;
+          for (int64_t column = begin; column < end; ++column) sum += codes[column] - zero;
+          block.zero_bytes[lane] = centred ? 0u : static_cast<uint32_t>(zero) * 0x01010101u;
+          block.offsets[lane] = -8 * sum;
+          block.scale_lanes[lane] = inside ? params[begin / group_size].scale : 0.0f;
         }
       }
     }
@@ -80,14 +120,90 @@ std::vector<QuantizedBlock> quantize_activation_blocks(const Element* x, int64_t
   return quantized;
 }
 
-// Columns rounded up to whole 16-column chunks: the row pitch of the act_bits 16 operand.
-inline int64_t chunk_padded(int64_t k) { return (k + kChunkColumns - 1) / kChunkColumns * kChunkColumns; }
+// s_w of each lane of block t (lane i: columns 8i..8i+7): one group for G >= 64; for G = 32 lanes 0-3
+// and 4-7 belong to groups 2t and 2t + 1, the second absent when the row's last block ends before it.
+inline __m256 weight_scale_lanes(const float* scales_row, int64_t t, int group_shift, int64_t groups) {
+  if (group_shift > 5) return _mm256_broadcast_ss(scales_row + ((t * kBlockColumns) >> group_shift));
+  const __m128 second = 2 * t + 1 < groups ? _mm_broadcast_ss(scales_row + 2 * t + 1) : _mm_setzero_ps();
+  return _mm256_set_m128(second, _mm_broadcast_ss(scales_row + 2 * t));
+}
 
-// act_bits 16: x in fp32, each 16 columns stored as the 8 even then the 8 odd ones; rows of
-// chunk_padded(k) values, zero past k.
+// acc[r] += s_x s_w P of each lane of block t, for kRows activation rows and the block's 32 packed bytes.
+template <int kRows, bool kWideCodes>
+inline void accumulate_block(__m256i packed, __m256 weight_scales, const DecodeBlock* const* rows, int64_t t,
+                             __m256* acc) {
+  const __m256i low_nibbles = _mm256_set1_epi8(0x0F);
+  const __m256i u = _mm256_xor_si256(packed, _mm256_set1_epi8(static_cast<char>(0x88)));
+  const __m256i even = _mm256_and_si256(u, low_nibbles);
+  const __m256i odd = _mm256_and_si256(_mm256_srli_epi16(u, 4), low_nibbles);
+  [[maybe_unused]] const __m256i both = kWideCodes ? _mm256_add_epi8(even, odd) : even;  // u sums: below 31
+  const __m256i ones = _mm256_set1_epi16(1);
+  for (int r = 0; r < kRows; ++r) {
+    const DecodeBlock& block = rows[r][t];
+    const __m256i a_even = _mm256_load_si256(reinterpret_cast<const __m256i*>(block.even_codes));
+    const __m256i a_odd = _mm256_load_si256(reinterpret_cast<const __m256i*>(block.odd_codes));
+    __m256i pairs;  // exact sums of 4 columns
+    if constexpr (kWideCodes) {
+      pairs = _mm256_add_epi16(_mm256_maddubs_epi16(a_even, even), _mm256_maddubs_epi16(a_odd, odd));
+      pairs = _mm256_sub_epi16(
+          pairs, _mm256_maddubs_epi16(_mm256_load_si256(reinterpret_cast<const __m256i*>(block.zero_bytes)), both));
+    } else {
+      pairs = _mm256_add_epi16(_mm256_maddubs_epi16(even, a_even), _mm256_maddubs_epi16(odd, a_odd));
+    }
+    const __m256i dot = _mm256_add_epi32(_mm256_madd_epi16(pairs, ones),
+                                         _mm256_load_si256(reinterpret_cast<const __m256i*>(block.offsets)));
+    acc[r] = _mm256_fmadd_ps(_mm256_cvtepi32_ps(dot), _mm256_mul_ps(weight_scales, _mm256_load_ps(block.scale_lanes)),
+                             acc[r]);
+  }
+}
+
+// sums[r] = y[r] (without bias) for one weight row and kRows integer activation rows. Two accumulators
+// per row, for even and odd blocks.
+template <int kRows, bool kWideCodes>
+void decode_int_kernel(const uint8_t* weight_row, const float* scales_row, int64_t k, int group_size,
+                       const DecodeBlock* const* rows, float* sums) {
+  const int64_t groups = group_count(k, group_size);
+  const int group_shift = __builtin_ctz(group_size);
+  const int64_t full_blocks = k / kBlockColumns;
+  __m256 acc[2][kRows];
+  for (int r = 0; r < kRows; ++r) acc[0][r] = acc[1][r] = _mm256_setzero_ps();
+  int64_t t = 0;
+  for (; t + 2 <= full_blocks; t += 2) {
+    const uint8_t* packed = weight_row + t * (kBlockColumns / 2);
+    _mm_prefetch(reinterpret_cast<const char*>(packed + kPrefetchBytes), _MM_HINT_T0);
+    accumulate_block<kRows, kWideCodes>(_mm256_loadu_si256(reinterpret_cast<const __m256i*>(packed)),
+                                        weight_scale_lanes(scales_row, t, group_shift, groups), rows, t, acc[0]);
+    accumulate_block<kRows, kWideCodes>(_mm256_loadu_si256(reinterpret_cast<const __m256i*>(packed + 32)),
+                                        weight_scale_lanes(scales_row, t + 1, group_shift, groups), rows, t + 1,
+                                        acc[1]);
+  }
+  if (t < full_blocks) {
+    accumulate_block<kRows, kWideCodes>(
+        _mm256_loadu_si256(reinterpret_cast<const __m256i*>(weight_row + t * (kBlockColumns / 2))),
+        weight_scale_lanes(scales_row, t, group_shift, groups), rows, t, acc[0]);
+    ++t;
+  }
+  if (k % kBlockColumns != 0) {
+    // The row's last, partial block: the bytes past k read as u = 0 (nibbles 8), so that they add
+    // nothing to z_x * sum(u); their activation codes are 0.
+    alignas(32) uint8_t tail[32];
+    std::memset(tail, 0x88, sizeof(tail));
+    std::memcpy(tail, weight_row + t * (kBlockColumns / 2), (k % kBlockColumns) / 2);
+    accumulate_block<kRows, kWideCodes>(_mm256_load_si256(reinterpret_cast<const __m256i*>(tail)),
+                                        weight_scale_lanes(scales_row, t, group_shift, groups), rows, t, acc[1]);
+  }
+  for (int r = 0; r < kRows; ++r) sums[r] = reduce_lanes<AddLanes>(_mm256_add_ps(acc[0][r], acc[1][r]));
+}
+
+// ---- row kernels, act_bits 16 -------------------------------------------------------------------------
+
+// Columns rounded up to whole groups: the row pitch of the act_bits 16 operands (zero past k).
+inline int64_t group_padded(int64_t k, int group_size) { return group_count(k, group_size) * group_size; }
+
+// act_bits 16 row operand: x in fp32, each 16 columns stored as the 8 even then the 8 odd ones.
 template <typename Element>
-std::vector<float> deinterleave_activations(const Element* x, int64_t m, int64_t k) {
-  const int64_t pitch = chunk_padded(k);
+std::vector<float> deinterleave_activations(const Element* x, int64_t m, int64_t k, int group_size) {
+  const int64_t pitch = group_padded(k, group_size);
   std::vector<float> deinterleaved(m * pitch);
   parallel_for(0, m, 4, [&](int64_t row_begin, int64_t row_end) {
     std::vector<float> row(pitch, 0.0f);
@@ -105,117 +221,400 @@ std::vector<float> deinterleave_activations(const Element* x, int64_t m, int64_t
   return deinterleaved;
 }
 
-// Splits 32 packed weight bytes into the s8 codes of their low nibbles (even columns) and high nibbles
-// (odd columns), sign-extending with a 16-entry byte lookup (vpshufb looks up within each 128-bit lane).
-inline void split_weight_nibbles(__m256i packed, __m256i& even, __m256i& odd) {
-  const __m256i low_nibbles = _mm256_set1_epi8(0x0F);
-  const __m256i nibble_values =
-      _mm256_broadcastsi128_si256(_mm_setr_epi8(0, 1, 2, 3, 4, 5, 6, 7, -8, -7, -6, -5, -4, -3, -2, -1));
-  even = _mm256_shuffle_epi8(nibble_values, _mm256_and_si256(packed, low_nibbles));
-  odd = _mm256_shuffle_epi8(nibble_values, _mm256_and_si256(_mm256_srli_epi16(packed, 4), low_nibbles));
+// The exact fp32 codes of 8 packed bytes (16 columns): q_w of the even columns and 16 q_w of the odd ones.
+inline void fp32_weight_codes(const uint8_t* packed, __m256& even, __m256& odd_times16) {
+  const __m256i lanes = _mm256_xor_si256(_mm256_cvtepu8_epi32(_mm_loadl_epi64(reinterpret_cast<const __m128i*>(packed))),
+                                         _mm256_set1_epi32(0x4B000088));
+  even = _mm256_sub_ps(_mm256_castsi256_ps(_mm256_and_si256(lanes, _mm256_set1_epi32(0x4B00000F))),
+                       _mm256_set1_ps(8388616.0f));  // 2^23 + 8
+  odd_times16 = _mm256_sub_ps(_mm256_castsi256_ps(_mm256_and_si256(lanes, _mm256_set1_epi32(0x4B0000F0))),
+                              _mm256_set1_ps(8388736.0f));  // 2^23 + 128
 }
 
-// sums[r] = y[r] (without bias) for one weight row and kRows quantized activation rows.
-template <int kRows>
-void quantized_row_kernel(const uint8_t* weight_row, const float* scales_row, int64_t k, int group_size,
-                          const QuantizedBlock* const* rows, float* sums) {
-  const int64_t full_blocks = k / kBlockColumns;
-  const int64_t tail_columns = k % kBlockColumns;
-  const int64_t blocks = full_blocks + (tail_columns != 0);
-  const int group_shift = __builtin_ctz(group_size);
-  const __m256i ones_u8 = _mm256_set1_epi8(1);
-  const __m256i ones_s16 = _mm256_set1_epi16(1);
-  __m256 acc[kRows];
-  for (int r = 0; r < kRows; ++r) acc[r] = _mm256_setzero_ps();
-  for (int64_t t = 0; t < blocks; ++t) {
-    const bool full = t < full_blocks;
-    const uint8_t* packed = weight_row + t * (kBlockColumns / 2);
-    // The tail block holds tail_columns / 2 bytes; the rest read as code 0.
-    __m256i bytes;
-    if (full) {
-      bytes = _mm256_loadu_si256(reinterpret_cast<const __m256i*>(packed));
-    } else {
-      alignas(32) uint8_t tail[32] = {};
-      std::memcpy(tail, packed, tail_columns / 2);
-      bytes = _mm256_load_si256(reinterpret_cast<const __m256i*>(tail));
-    }
-    __m256i even, odd;
-    split_weight_nibbles(bytes, even, odd);
-    const __m256 weight_sums = _mm256_cvtepi32_ps(_mm256_madd_epi16(
-        _mm256_add_epi16(_mm256_maddubs_epi16(ones_u8, even), _mm256_maddubs_epi16(ones_u8, odd)), ones_s16));
-    // Group 32 splits a block between two groups (lanes 0-3 and 4-7) when the block reaches past its
-    // first 32 columns; larger groups hold it whole.
-    const float* block_scales = scales_row + ((t * kBlockColumns) >> group_shift);
-    const bool two_groups = group_size < kBlockColumns && (full || tail_columns > kBlockColumns / 2);
-    const __m256 weight_scales = two_groups
-                                     ? _mm256_setr_m128(_mm_set1_ps(block_scales[0]), _mm_set1_ps(block_scales[1]))
-                                     : _mm256_set1_ps(block_scales[0]);
-    for (int r = 0; r < kRows; ++r) {
-      const QuantizedBlock& block = rows[r][t];
-      const __m256i pair_sums =
-          _mm256_add_epi16(_mm256_maddubs_epi16(_mm256_load_si256(reinterpret_cast<const __m256i*>(block.even_codes)), even),
-                           _mm256_maddubs_epi16(_mm256_load_si256(reinterpret_cast<const __m256i*>(block.odd_codes)), odd));
-      const __m256i dot = _mm256_madd_epi16(pair_sums, ones_s16);
-      // P = sum q_x q_w - z_x sum q_w, exact in fp32 (integers below 2^24).
-      const __m256 partial = _mm256_fnmadd_ps(weight_sums, _mm256_load_ps(block.zero_lanes), _mm256_cvtepi32_ps(dot));
-      acc[r] = _mm256_fmadd_ps(partial, _mm256_mul_ps(weight_scales, _mm256_load_ps(block.scale_lanes)), acc[r]);
-    }
-  }
-  for (int r = 0; r < kRows; ++r) sums[r] = reduce_lanes<AddLanes>(acc[r]);
-}
-
+// sums[r] = y[r] (without bias) for one weight row and kRows fp32 activation rows (deinterleaved,
+// group_padded). One row alone gets four accumulator chains (two 16-column chunks, even and odd),
+// several rows two each.
 template <int kRows>
 void fp32_row_kernel(const uint8_t* weight_row, const float* scales_row, int64_t k, int group_size,
                      const float* const* rows, float* sums) {
-  const __m256i low_nibble = _mm256_set1_epi32(0xF);
-  const __m256i eight = _mm256_set1_epi32(8);
-  __m256 acc[kRows];
-  for (int r = 0; r < kRows; ++r) acc[r] = _mm256_setzero_ps();
-  for (int64_t g = 0; g < group_count(k, group_size); ++g) {
-    __m256 group_acc[kRows];
-    for (int r = 0; r < kRows; ++r) group_acc[r] = _mm256_setzero_ps();
-    const int64_t group_end = std::min<int64_t>((g + 1) * group_size, k);
-    for (int64_t c = g * group_size; c < group_end; c += kChunkColumns) {
-      __m128i packed;
-      if (c + kChunkColumns <= k) {
-        packed = _mm_loadl_epi64(reinterpret_cast<const __m128i*>(weight_row + c / 2));
-      } else {  // the row's last, partial chunk: the bytes past k read as code 0
-        alignas(16) uint8_t tail[16] = {};
-        std::memcpy(tail, weight_row + c / 2, (k - c) / 2);
-        packed = _mm_load_si128(reinterpret_cast<const __m128i*>(tail));
+  constexpr int kChains = kRows == 1 ? 4 : 2;  // chain c takes the even (c even) or odd columns
+  const int64_t groups = group_count(k, group_size);
+  __m256 total[kRows];
+  for (int r = 0; r < kRows; ++r) total[r] = _mm256_setzero_ps();
+  alignas(16) uint8_t tail[64];  // the last group's bytes when it is partial, zero past k
+  for (int64_t g = 0; g < groups; ++g) {
+    const int64_t first = g * group_size;
+    const uint8_t* packed = weight_row + first / 2;
+    if (first + group_size > k) {
+      std::memset(tail, 0, sizeof(tail));
+      std::memcpy(tail, packed, (k - first) / 2);
+      packed = tail;
+    }
+    __m256 acc[kRows][kChains];
+    for (int r = 0; r < kRows; ++r) {
+      for (int c = 0; c < kChains; ++c) acc[r][c] = _mm256_setzero_ps();
+    }
+    for (int64_t c = 0; c < group_size; c += 2 * kChunkColumns) {
+      if ((first + c) % 128 == 0) {  // once per 64-byte line
+        _mm_prefetch(reinterpret_cast<const char*>(weight_row + (first + c) / 2 + kPrefetchBytes), _MM_HINT_T0);
       }
-      const __m256i bytes = _mm256_cvtepu8_epi32(packed);
-      const __m256 even = _mm256_cvtepi32_ps(
-          _mm256_sub_epi32(_mm256_xor_si256(_mm256_and_si256(bytes, low_nibble), eight), eight));
-      const __m256 odd = _mm256_cvtepi32_ps(_mm256_sub_epi32(_mm256_xor_si256(_mm256_srli_epi32(bytes, 4), eight), eight));
+      __m256 w[4];
+      fp32_weight_codes(packed + c / 2, w[0], w[1]);
+      fp32_weight_codes(packed + c / 2 + 8, w[2], w[3]);
       for (int r = 0; r < kRows; ++r) {
-        group_acc[r] = _mm256_fmadd_ps(even, _mm256_loadu_ps(rows[r] + c), group_acc[r]);
-        group_acc[r] = _mm256_fmadd_ps(odd, _mm256_loadu_ps(rows[r] + c + 8), group_acc[r]);
+        const float* x = rows[r] + first + c;
+        for (int j = 0; j < 4; ++j) acc[r][j % kChains] = _mm256_fmadd_ps(w[j], _mm256_loadu_ps(x + 8 * j), acc[r][j % kChains]);
       }
     }
-    const __m256 scale = _mm256_set1_ps(scales_row[g]);
-    for (int r = 0; r < kRows; ++r) acc[r] = _mm256_fmadd_ps(group_acc[r], scale, acc[r]);
+    const __m256 scale = _mm256_broadcast_ss(scales_row + g);
+    const __m256 odd_scale = _mm256_mul_ps(scale, _mm256_set1_ps(1.0f / 16));
+    for (int r = 0; r < kRows; ++r) {
+      __m256 even = acc[r][0], odd = acc[r][1];
+      if constexpr (kChains == 4) {
+        even = _mm256_add_ps(even, acc[r][2]);
+        odd = _mm256_add_ps(odd, acc[r][3]);
+      }
+      total[r] = _mm256_add_ps(total[r], _mm256_fmadd_ps(even, scale, _mm256_mul_ps(odd, odd_scale)));
+    }
   }
-  for (int r = 0; r < kRows; ++r) sums[r] = reduce_lanes<AddLanes>(acc[r]);
+  for (int r = 0; r < kRows; ++r) sums[r] = reduce_lanes<AddLanes>(total[r]);
 }
 
 #include "gemm/gemm_cpu_row_tiles.inc"
+
+// ---- panel path ---------------------------------------------------------------------------------------
+
+constexpr int64_t kPanelOutputs = 16;  // weight rows (outputs) per panel: two vectors of 8
+
+// A vector's worth of bytes, as an element of std::vector (aligned by C++17's aligned new).
+struct alignas(32) VectorBytes {
+  uint8_t bytes[32];
+};
+
+// The 16 bytes (32 columns) of weight row `row` from `column` on; past n or k they read as 0.
+inline __m128i load_weight_chunk(const uint8_t* qweight, int64_t n, int64_t k, int64_t row, int64_t column) {
+  if (row >= n || column >= k) return _mm_setzero_si128();
+  const uint8_t* packed = qweight + row * (k / 2) + column / 2;
+  if (k - column >= 32) return _mm_loadu_si128(reinterpret_cast<const __m128i*>(packed));
+  alignas(16) uint8_t tail[16] = {};
+  std::memcpy(tail, packed, (k - column) / 2);
+  return _mm_load_si128(reinterpret_cast<const __m128i*>(tail));
+}
+
+// Loads 32 columns of 8 weight rows and transposes them as 16-bit words: on return words[q] holds, in
+// word o, the two bytes of output row_begin + o for columns column + 4q .. column + 4q + 3.
+inline void load_transposed_words(const uint8_t* qweight, int64_t n, int64_t k, int64_t row_begin, int64_t column,
+                                  __m128i words[8]) {
+  __m128i t[8], u[8];
+  for (int i = 0; i < 8; ++i) t[i] = load_weight_chunk(qweight, n, k, row_begin + i, column);
+  for (int i = 0; i < 4; ++i) {
+    u[2 * i] = _mm_unpacklo_epi16(t[2 * i], t[2 * i + 1]);
+    u[2 * i + 1] = _mm_unpackhi_epi16(t[2 * i], t[2 * i + 1]);
+  }
+  // u[0]: rows 0-1, words 0-3; u[1]: rows 0-1, words 4-7; u[2], u[3]: rows 2-3; ...
+  for (int i = 0; i < 2; ++i) {
+    t[4 * i + 0] = _mm_unpacklo_epi32(u[4 * i], u[4 * i + 2]);      // rows 4i..4i+3, words 0-1
+    t[4 * i + 1] = _mm_unpackhi_epi32(u[4 * i], u[4 * i + 2]);      // words 2-3
+    t[4 * i + 2] = _mm_unpacklo_epi32(u[4 * i + 1], u[4 * i + 3]);  // words 4-5
+    t[4 * i + 3] = _mm_unpackhi_epi32(u[4 * i + 1], u[4 * i + 3]);  // words 6-7
+  }
+  for (int j = 0; j < 4; ++j) {
+    words[2 * j] = _mm_unpacklo_epi64(t[j], t[4 + j]);
+    words[2 * j + 1] = _mm_unpackhi_epi64(t[j], t[4 + j]);
+  }
+}
+
+// act_bits 2/4/8: s8 codes of a panel's slice of columns; per group, each output's s_w and sum of codes.
+struct IntWeightPanel {
+  std::vector<VectorBytes> codes;  // [quad][half]: lane o of half h holds columns 4 quad..+3 of output 8h + o
+  std::vector<float> scales;       // [group][16]
+  std::vector<float> sums;         // [group][16]
+
+  void pack(const uint8_t* qweight, const float* all_scales, int64_t n, int64_t k, int group_size,
+            int64_t row_begin, int64_t col_begin, int64_t depth) {
+    const int64_t quads = depth / 4, panel_groups = depth / group_size;
+    codes.resize(quads * 2);
+    scales.resize(panel_groups * kPanelOutputs);
+    sums.resize(panel_groups * kPanelOutputs);
+    const __m128i low_nibbles = _mm_set1_epi8(0x0F);
+    const __m256i nibble_values =
+        _mm256_broadcastsi128_si256(_mm_setr_epi8(0, 1, 2, 3, 4, 5, 6, 7, -8, -7, -6, -5, -4, -3, -2, -1));
+    for (int half = 0; half < 2; ++half) {
+      for (int64_t c = 0; c < depth; c += 32) {
+        __m128i words[8];
+        load_transposed_words(qweight, n, k, row_begin + 8 * half, col_begin + c, words);
+        for (int q = 0; q < 8; ++q) {
+          // Each word's 4 nibbles in column order: low and high nibble of its first byte, then of its second.
+          const __m128i low = _mm_and_si128(words[q], low_nibbles);
+          const __m128i high = _mm_and_si128(_mm_srli_epi16(words[q], 4), low_nibbles);
+          const __m256i nibbles = _mm256_set_m128i(_mm_unpackhi_epi8(low, high), _mm_unpacklo_epi8(low, high));
+          _mm256_store_si256(reinterpret_cast<__m256i*>(codes[(c / 4 + q) * 2 + half].bytes),
+                             _mm256_shuffle_epi8(nibble_values, nibbles));
+        }
+      }
+    }
+    const int64_t quads_per_group = group_size / 4;
+    const int64_t first_group = col_begin / group_size, groups = group_count(k, group_size);
+    const __m256i ones_u8 = _mm256_set1_epi8(1), ones_s16 = _mm256_set1_epi16(1);
+    for (int64_t g = 0; g < panel_groups; ++g) {
+      for (int half = 0; half < 2; ++half) {
+        __m256i sum = _mm256_setzero_si256();
+        for (int64_t q = g * quads_per_group; q < (g + 1) * quads_per_group; ++q) {
+          const __m256i quad = _mm256_load_si256(reinterpret_cast<const __m256i*>(codes[q * 2 + half].bytes));
+          sum = _mm256_add_epi32(sum, _mm256_madd_epi16(_mm256_maddubs_epi16(ones_u8, quad), ones_s16));
+        }
+        _mm256_storeu_ps(&sums[g * kPanelOutputs + 8 * half], _mm256_cvtepi32_ps(sum));
+      }
+      for (int64_t j = 0; j < kPanelOutputs; ++j) {
+        const int64_t row = row_begin + j;
+        scales[g * kPanelOutputs + j] = row < n ? all_scales[row * groups + first_group + g] : 0.0f;
+      }
+    }
+  }
+};
+
+// act_bits 2/4/8 panel operand: q_x per row (zero past k), s_x and z_x per group.
+struct PanelCodes {
+  std::vector<uint8_t> codes;  // [m][group_padded(k)]
+  std::vector<float> scales;   // [m][groups]
+  std::vector<float> zeros;    // [m][groups]
+  int64_t pitch = 0, groups = 0;
+};
+
+template <typename Element>
+PanelCodes panel_codes(const Element* x, int64_t m, int64_t k, int group_size, int act_bits) {
+  PanelCodes out;
+  out.pitch = group_padded(k, group_size);
+  out.groups = group_count(k, group_size);
+  out.codes.assign(m * out.pitch, 0);
+  out.scales.resize(m * out.groups);
+  out.zeros.resize(m * out.groups);
+  parallel_for(0, m, 4, [&](int64_t row_begin, int64_t row_end) {
+    std::vector<float> row(k);
+    std::vector<ActivationGroupParams> params(out.groups);
+    for (int64_t r = row_begin; r < row_end; ++r) {
+      quantize_activation_row(x + r * k, k, group_size, act_bits, row.data(), out.codes.data() + r * out.pitch,
+                              params.data());
+      for (int64_t g = 0; g < out.groups; ++g) {
+        out.scales[r * out.groups + g] = params[g].scale;
+        out.zeros[r * out.groups + g] = static_cast<float>(params[g].zero);
+      }
+    }
+  });
+  return out;
+}
+
+struct IntPanelRow {
+  const uint8_t* codes;
+  const float* scales;
+  const float* zeros;
+};
+
+inline __m256i broadcast_quad(const uint8_t* codes) {
+  int32_t quad;
+  std::memcpy(&quad, codes, 4);
+  return _mm256_set1_epi32(quad);
+}
+
+// totals[r][0..16) += the slice's contribution for activation rows rows[0..kRows), each at the slice's
+// first column and group.
+template <int kRows>
+void int_panel_kernel(const IntWeightPanel& panel, const IntPanelRow* rows, int64_t depth, int group_size,
+                      float* totals) {
+  const __m256i ones = _mm256_set1_epi16(1);
+  const int64_t quads_per_group = group_size / 4;
+  const auto* codes = reinterpret_cast<const __m256i*>(panel.codes.data());
+  for (int64_t g = 0; g < depth / group_size; ++g) {
+    __m256i acc[kRows][2];
+    for (int r = 0; r < kRows; ++r) acc[r][0] = acc[r][1] = _mm256_setzero_si256();
+    for (int64_t q = g * quads_per_group; q < (g + 1) * quads_per_group; q += 4) {
+      const __m256i* w = codes + 2 * q;  // w[2 j + h]: quad q + j, outputs 8h..8h+7
+      for (int r = 0; r < kRows; ++r) {
+        const uint8_t* x = rows[r].codes + 4 * q;
+        const __m256i a0 = broadcast_quad(x), a1 = broadcast_quad(x + 4), a2 = broadcast_quad(x + 8),
+                      a3 = broadcast_quad(x + 12);
+        for (int h = 0; h < 2; ++h) {
+          // Four quads summed in 16 bits: at most 4 * 2 * 255 * 8 = 16320.
+          const __m256i pairs =
+              _mm256_add_epi16(_mm256_add_epi16(_mm256_maddubs_epi16(a0, w[h]), _mm256_maddubs_epi16(a1, w[2 + h])),
+                               _mm256_add_epi16(_mm256_maddubs_epi16(a2, w[4 + h]), _mm256_maddubs_epi16(a3, w[6 + h])));
+          acc[r][h] = _mm256_add_epi32(acc[r][h], _mm256_madd_epi16(pairs, ones));
+        }
+      }
+    }
+    // The totals stay in memory: registers for them would make the compiler spill the inner loop.
+    for (int h = 0; h < 2; ++h) {
+      const __m256 weight_scales = _mm256_loadu_ps(&panel.scales[g * kPanelOutputs + 8 * h]);
+      const __m256 weight_sums = _mm256_loadu_ps(&panel.sums[g * kPanelOutputs + 8 * h]);
+      for (int r = 0; r < kRows; ++r) {
+        // P = sum q_x q_w - z_x sum q_w, exact in fp32 (integers below 2^24).
+        const __m256 partial =
+            _mm256_fnmadd_ps(weight_sums, _mm256_broadcast_ss(rows[r].zeros + g), _mm256_cvtepi32_ps(acc[r][h]));
+        float* total = totals + r * kPanelOutputs + 8 * h;
+        _mm256_storeu_ps(total, _mm256_fmadd_ps(partial, _mm256_mul_ps(weight_scales, _mm256_broadcast_ss(rows[r].scales + g)),
+                                                _mm256_loadu_ps(total)));
+      }
+    }
+  }
+}
+
+struct IntPanel {
+  using WeightPanel = IntWeightPanel;
+  using Row = IntPanelRow;
+  static constexpr int kTileRows = 4;
+  static constexpr int64_t kDepth = 1024;  // columns per decoded slice: 16 KB of codes
+  static Row advance(Row row, int64_t column, int64_t group) {
+    return {row.codes + column, row.scales + group, row.zeros + group};
+  }
+  template <int kRows>
+  static void kernel(const WeightPanel& panel, const Row* rows, int64_t depth, int group_size, float* totals) {
+    int_panel_kernel<kRows>(panel, rows, depth, group_size, totals);
+  }
+};
+
+// act_bits 16: fp32 codes of a panel's slice of columns; each output's s_w per group.
+struct Fp32WeightPanel {
+  std::vector<VectorBytes> codes;  // [column][half]: lane o of half h is output 8h + o
+  std::vector<float> scales;       // [group][16]
+
+  void pack(const uint8_t* qweight, const float* all_scales, int64_t n, int64_t k, int group_size,
+            int64_t row_begin, int64_t col_begin, int64_t depth) {
+    const int64_t panel_groups = depth / group_size;
+    codes.resize(depth * 2);
+    scales.resize(panel_groups * kPanelOutputs);
+    for (int half = 0; half < 2; ++half) {
+      for (int64_t c = 0; c < depth; c += 32) {
+        __m128i words[8];
+        load_transposed_words(qweight, n, k, row_begin + 8 * half, col_begin + c, words);
+        for (int q = 0; q < 8; ++q) {
+          const __m256i lanes = _mm256_cvtepu16_epi32(words[q]);
+          for (int j = 0; j < 4; ++j) {  // nibble j of the word is column 4q + j: to the top, then back down
+            const __m256i code = _mm256_srai_epi32(_mm256_slli_epi32(lanes, 28 - 4 * j), 28);
+            _mm256_store_ps(reinterpret_cast<float*>(codes[(c + 4 * q + j) * 2 + half].bytes), _mm256_cvtepi32_ps(code));
+          }
+        }
+      }
+    }
+    const int64_t first_group = col_begin / group_size, groups = group_count(k, group_size);
+    for (int64_t g = 0; g < panel_groups; ++g) {
+      for (int64_t j = 0; j < kPanelOutputs; ++j) {
+        const int64_t row = row_begin + j;
+        scales[g * kPanelOutputs + j] = row < n ? all_scales[row * groups + first_group + g] : 0.0f;
+      }
+    }
+  }
+};
+
+template <int kRows>
+void fp32_panel_kernel(const Fp32WeightPanel& panel, const float* const* rows, int64_t depth, int group_size,
+                       float* totals) {
+  const auto* codes = reinterpret_cast<const float*>(panel.codes.data());
+  for (int64_t g = 0; g < depth / group_size; ++g) {
+    __m256 acc[kRows][2];
+    for (int r = 0; r < kRows; ++r) acc[r][0] = acc[r][1] = _mm256_setzero_ps();
+    for (int64_t c = g * group_size; c < (g + 1) * group_size; ++c) {
+      const __m256 low = _mm256_load_ps(codes + 16 * c), high = _mm256_load_ps(codes + 16 * c + 8);
+      for (int r = 0; r < kRows; ++r) {
+        const __m256 x = _mm256_broadcast_ss(rows[r] + c);
+        acc[r][0] = _mm256_fmadd_ps(x, low, acc[r][0]);
+        acc[r][1] = _mm256_fmadd_ps(x, high, acc[r][1]);
+      }
+    }
+    for (int h = 0; h < 2; ++h) {
+      const __m256 weight_scales = _mm256_loadu_ps(&panel.scales[g * kPanelOutputs + 8 * h]);
+      for (int r = 0; r < kRows; ++r) {
+        float* total = totals + r * kPanelOutputs + 8 * h;
+        _mm256_storeu_ps(total, _mm256_fmadd_ps(acc[r][h], weight_scales, _mm256_loadu_ps(total)));
+      }
+    }
+  }
+}
+
+struct Fp32Panel {
+  using WeightPanel = Fp32WeightPanel;
+  using Row = const float*;
+  static constexpr int kTileRows = 6;
+  static constexpr int64_t kDepth = 256;  // columns per decoded slice: 16 KB of codes
+  static Row advance(Row row, int64_t column, int64_t) { return row + column; }
+  template <int kRows>
+  static void kernel(const WeightPanel& panel, const Row* rows, int64_t depth, int group_size, float* totals) {
+    fp32_panel_kernel<kRows>(panel, rows, depth, group_size, totals);
+  }
+};
+
+// Threads split the panels; each decodes a panel's slice of columns once and runs it against every
+// activation row. Slices are whole groups (Kind::kDepth is a multiple of every group size).
+template <typename Kind, typename Element, typename ActivationRow>
+void run_panels(ActivationRow&& activation_row, const uint8_t* qweight, const float* scales, const Element* bias,
+                int64_t m, int64_t n, int64_t k, int group_size, Element* out) {
+  const int64_t panels = (n + kPanelOutputs - 1) / kPanelOutputs;
+  const int64_t padded = group_padded(k, group_size);
+  parallel_for(0, panels, 1, [&](int64_t panel_begin, int64_t panel_end) {
+    typename Kind::WeightPanel panel;
+    std::vector<float> totals(m * kPanelOutputs);  // [m][16]
+    std::vector<typename Kind::Row> rows(m);
+    for (int64_t p = panel_begin; p < panel_end; ++p) {
+      const int64_t row_begin = p * kPanelOutputs;
+      std::fill(totals.begin(), totals.end(), 0.0f);
+      for (int64_t col = 0; col < padded; col += Kind::kDepth) {
+        const int64_t depth = std::min(Kind::kDepth, padded - col);
+        panel.pack(qweight, scales, n, k, group_size, row_begin, col, depth);
+        for (int64_t r = 0; r < m; ++r) rows[r] = Kind::advance(activation_row(r), col, col / group_size);
+        for (int64_t r = 0; r < m; r += Kind::kTileRows) {
+          dispatch_tile_rows<Kind::kTileRows>(static_cast<int>(std::min<int64_t>(Kind::kTileRows, m - r)),
+                                              [&](auto tile_rows) {
+                                                Kind::template kernel<decltype(tile_rows)::value>(
+                                                    panel, rows.data() + r, depth, group_size,
+                                                    totals.data() + r * kPanelOutputs);
+                                              });
+        }
+      }
+      const int64_t outputs = std::min(kPanelOutputs, n - row_begin);
+      for (int64_t r = 0; r < m; ++r) {
+        for (int64_t j = 0; j < outputs; ++j) {
+          const float bias_value = bias != nullptr ? to_float(bias[row_begin + j]) : 0.0f;
+          out[r * n + row_begin + j] = from_float<Element>(totals[r * kPanelOutputs + j] + bias_value);
+        }
+      }
+    }
+  });
+}
 
 template <int kBits, typename Element>
 void gemm_typed(const Element* x, const uint8_t* qweight, const float* scales, const Element* bias, int64_t m,
                 int64_t n, int64_t k, int group_size, Element* out) {
   if constexpr (ActivationTraits<kBits>::kQuantized) {
+    if (m >= kPanelMinRows) {
+      const PanelCodes activations = panel_codes(x, m, k, group_size, kBits);
+      run_panels<IntPanel>(
+          [&](int64_t r) {
+            return IntPanelRow{activations.codes.data() + r * activations.pitch,
+                               activations.scales.data() + r * activations.groups,
+                               activations.zeros.data() + r * activations.groups};
+          },
+          qweight, scales, bias, m, n, k, group_size, out);
+      return;
+    }
     const int64_t blocks = (k + kBlockColumns - 1) / kBlockColumns;
-    const std::vector<QuantizedBlock> activations = quantize_activation_blocks(x, m, k, group_size, kBits);
+    const std::vector<DecodeBlock> activations = decode_activations(x, m, k, group_size, kBits);
     run_tiles<kMaxTileRows>(
         qweight, scales, bias, m, n, k, group_size, out, [&](int64_t r) { return activations.data() + r * blocks; },
-        [&](auto tile_rows, const uint8_t* weight_row, const float* scales_row, const QuantizedBlock* const* rows,
+        [&](auto tile_rows, const uint8_t* weight_row, const float* scales_row, const DecodeBlock* const* rows,
             float* sums) {
-          quantized_row_kernel<decltype(tile_rows)::value>(weight_row, scales_row, k, group_size, rows, sums);
+          decode_int_kernel<decltype(tile_rows)::value, kBits == 8>(weight_row, scales_row, k, group_size, rows, sums);
         });
   } else {
-    const std::vector<float> activations = deinterleave_activations(x, m, k);
-    const int64_t pitch = chunk_padded(k);
+    const int64_t pitch = group_padded(k, group_size);
+    if (m >= kPanelMinRows) {
+      std::vector<float> activations(m * pitch, 0.0f);
+      parallel_for(0, m, 16, [&](int64_t row_begin, int64_t row_end) {
+        for (int64_t r = row_begin; r < row_end; ++r) load_row_fp32(x + r * k, k, activations.data() + r * pitch);
+      });
+      run_panels<Fp32Panel>([&](int64_t r) { return static_cast<const float*>(activations.data() + r * pitch); },
+                            qweight, scales, bias, m, n, k, group_size, out);
+      return;
+    }
+    const std::vector<float> activations = deinterleave_activations(x, m, k, group_size);
     run_tiles<kMaxTileRows>(
         qweight, scales, bias, m, n, k, group_size, out, [&](int64_t r) { return activations.data() + r * pitch; },
         [&](auto tile_rows, const uint8_t* weight_row, const float* scales_row, const float* const* rows, float* sums) {
@@ -224,8 +623,10 @@ void gemm_typed(const Element* x, const uint8_t* qweight, const float* scales, c
   }
 }
 
-inline const char* gemm_kernel(int64_t, int64_t, int, int act_bits) {
-  return act_bits == kFallbackBits ? "avx2/rows-fp32" : "avx2/rows-maddubs";
+inline const char* gemm_kernel(int64_t m, int64_t, int, int act_bits) {
+  const bool panel = m >= kPanelMinRows;
+  if (act_bits == kFallbackBits) return panel ? "avx2/panel-fp32" : "avx2/rows-fp32";
+  return panel ? "avx2/panel-maddubs" : "avx2/rows-maddubs";
 }
 
 }  // namespace dyq::cpu::avx2

@@ -6,11 +6,14 @@
 #include <functional>
 #include <limits>
 #include <string>
+#include <thread>
 #include <tuple>
+#include <vector>
 
 #include "cpu/cpu_isa.h"
 #include "gemm/gemm_cpu.h"
 #include "naive_reference.h"
+#include "parallel/parallel.h"
 #include "weight/weight_pack_cpu.h"
 
 namespace {
@@ -228,5 +231,82 @@ TEST_P(GemmLargeTest, MatchesNaiveReference) {
 
 INSTANTIATE_TEST_SUITE_P(Shapes, GemmLargeTest,
                          ::testing::Combine(::testing::Values(2, 4, 8, 16), ::testing::Values(1, 2, 7, 33, 70)));
+
+// The largest codes of the format (q_x at 0 and 2^b - 1, z_x at either end, q_w at 7 and -8) in every row
+// of a group: the kernels' 16-bit partial sums must not saturate, and P stays exact.
+TEST_P(GemmEdgeTest, ExtremeCodesStayExact) {
+  const int act_bits = GetParam();
+  const int64_t n = 18, k = 256;
+  const int group_size = 128;
+  for (const int64_t m : {1, 3, 16, 19}) {
+    Inputs in;
+    in.x.resize(m * k);
+    for (int64_t r = 0; r < m; ++r) {
+      for (int64_t c = 0; c < k; ++c) {
+        const float sign = r % 3 == 0 ? 1.0f : r % 3 == 1 ? -1.0f : (c % 2 == 0 ? 1.0f : -1.0f);
+        in.x[r * k + c] = sign * 3.0f;
+      }
+    }
+    in.weight.codes.resize(n * k);
+    in.weight.scales.assign(n * 2, 0.5f);
+    for (int64_t j = 0; j < n; ++j) {
+      for (int64_t c = 0; c < k; ++c) in.weight.codes[j * k + c] = j % 2 == 0 ? 7 : -8;
+    }
+    in.qweight = naive::pack_weight(in.weight.codes);
+    const Problem p{m, n, k, group_size, act_bits, false, 0};
+    const auto ref = naive::gemm(in.x, in.weight, in.bias, m, n, k, group_size, act_bits);
+    for (const auto& impl : implementations()) {
+      std::vector<float> out(m * n);
+      impl.run(in.x.data(), ScalarType::kFloat32, in.qweight.data(), in.weight.scales.data(), nullptr, m, n, k,
+               group_size, act_bits, out.data());
+      expect_within_bound(out, ref, relative_bound(impl, p), impl.name + " m " + std::to_string(m));
+    }
+  }
+}
+
+// Around the CPU's switch from the row kernels (decode) to the panel path (at 8 rows on the AVX2 and
+// AVX-512 paths), with N not a multiple of the panels' 16 outputs and K not a multiple of the group size, on
+// fresh random inputs for every width and group size.
+class GemmPanelThresholdTest : public ::testing::TestWithParam<std::tuple<int, int>> {};
+
+TEST_P(GemmPanelThresholdTest, MatchesNaiveReferenceOnEitherSide) {
+  const auto [act_bits, group_size] = GetParam();
+  uint32_t seed = 1000u + 10 * act_bits + group_size;
+  for (const int64_t m : {1, 2, 5, 7, 8, 9, 15, 16, 17, 23}) {
+    check_problem({m, 53, 4 * group_size + 34, group_size, act_bits, m % 2 == 1, seed++}, ScalarType::kFloat32);
+  }
+  check_problem({16, 21, 3 * group_size, group_size, act_bits, true, seed++}, ScalarType::kBFloat16);
+  check_problem({17, 35, 2 * group_size + 6, group_size, act_bits, false, seed++}, ScalarType::kFloat16);
+}
+
+INSTANTIATE_TEST_SUITE_P(WidthsAndGroups, GemmPanelThresholdTest,
+                         ::testing::Combine(::testing::Values(2, 4, 8, 16), ::testing::Values(32, 64, 128)));
+
+// Runs every chunk of a parallel_for on a thread of its own, in chunks of the grain: far more, and
+// smaller, pieces of the output than the pool makes on a small machine.
+void thread_per_chunk_backend(int64_t begin, int64_t end, int64_t grain_size, const dyq::RangeBody& body) {
+  std::vector<std::thread> threads;
+  for (int64_t chunk = begin; chunk < end; chunk += grain_size) {
+    threads.emplace_back([&body, chunk, end, grain_size] { body(chunk, std::min(chunk + grain_size, end)); });
+  }
+  for (auto& thread : threads) thread.join();
+}
+
+class GemmManyThreadsTest : public ::testing::TestWithParam<int> {
+ protected:
+  void SetUp() override { dyq::set_parallel_backend(thread_per_chunk_backend); }
+  void TearDown() override { dyq::set_parallel_backend(nullptr); }
+};
+
+TEST_P(GemmManyThreadsTest, MatchesNaiveReferenceWithAThreadPerChunk) {
+  const int act_bits = GetParam();
+  uint32_t seed = 2000u + act_bits;
+  for (const int64_t m : {1, 3, 16, 29}) {
+    check_problem({m, 77, 576, 64, act_bits, true, seed++}, ScalarType::kFloat32);
+    check_problem({m, 40, 160, 32, act_bits, false, seed++}, ScalarType::kBFloat16);
+  }
+}
+
+INSTANTIATE_TEST_SUITE_P(AllActBits, GemmManyThreadsTest, ::testing::Values(2, 4, 8, 16));
 
 }  // namespace
