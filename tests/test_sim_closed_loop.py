@@ -176,6 +176,17 @@ def test_results_merge_keeps_other_rows(tmp_path, monkeypatch):
     assert "| w4a8 |" in evaluate.markdown_table(data)
 
 
+def test_a_row_on_fewer_seeds_keeps_the_seeds_of_the_rows_on_more(tmp_path):
+    out = tmp_path / "closed_loop.json"
+    row = evaluate.summarize([{"seed": 0, "success": True, "steps": 1, "bits": [16], "latency_ms": [1.0],
+                               "prefill_kernel_bits": [{}], "decode_kernel_bits": [{}]}])
+    evaluate.update_results(out, TASK, list(range(100)), "ckpt", "abc", {"fp32": row})
+    data = evaluate.update_results(out, TASK, list(range(50)), "ckpt", "abc", {"dyq": row})
+    assert data["tasks"][TASK]["seeds"] == list(range(100))
+    data = evaluate.update_results(out, TASK, [7], "ckpt", "def", {"w4a8": row})  # another policy
+    assert data["tasks"][TASK]["seeds"] == [7]
+
+
 def test_each_row_records_the_cpu_path_it_ran_on(tmp_path, monkeypatch):
     out = tmp_path / "closed_loop.json"
     row = evaluate.summarize([{"seed": 0, "success": True, "steps": 1, "bits": [16], "latency_ms": [1.0],

@@ -272,6 +272,10 @@ def update_results(out: Path, task: str, seeds: list[int], checkpoint: str, dige
     entry = data["tasks"].setdefault(task, {"configs": {}})
     if entry.get("checkpoint_digest") not in (None, digest):
         entry["configs"] = {}  # a retrained policy: the old rows describe another policy
+        entry["seeds"] = []
+    # The task's seeds are those of all its rows: a run of fewer seeds (one new row on 50 seeds) leaves
+    # the rows measured on more as they are, and the header must still cover them.
+    seeds = sorted(set(entry.get("seeds", [])) | set(seeds))
     entry.update(horizon=envs.spec(task).horizon, seeds=seeds, checkpoint=checkpoint_label(checkpoint),
                  checkpoint_digest=digest)
     import dyq
