@@ -12,8 +12,9 @@ from torch import nn
 from ..control.flag import PrecisionFlag
 from .linear import DyQLinear
 from .precision import check_bits, check_group_size
+from . import reference
 from .weight_methods import (CALIBRATED_METHODS, DEFAULT_CALIBRATION_BITS, awq_prepare, check_calibration_bits,
-                             check_method, packed_clipped_weight)
+                             check_method, collect_hessians, gptq_weight, packed_clipped_weight)
 
 SkipPattern = Union[str, Pattern[str]]
 DEFAULT_SKIP = ("lm_head",)
@@ -106,9 +107,11 @@ def quantize_model(model: nn.Module, group_size: int = 128, skip: Iterable[SkipP
             switches the whole model (the dispatcher's b*_t).
         method: how the INT4 codes and scales are chosen (``dyq.core.weight_methods``, docs/numerics.md
             section 1a): ``"rtn"`` (round-to-nearest from the absmax), ``"mse"`` (per-group clipping search)
-            or ``"awq"`` (activation-aware scaling folded into the float model, then clipping weighted by
-            the activations; needs ``calibration``). Every method writes the same format.
-        calibration: for ``"awq"``, what the model is run on to observe its activations: a tensor
+            , ``"awq"`` (activation-aware scaling folded into the float model, then clipping weighted by
+            the activations; needs ``calibration``) or ``"gptq"`` (error-compensating rounding from each
+            layer's Hessian over the float model's calibration inputs; needs ``calibration``). Every method
+            writes the same format.
+        calibration: for ``"awq"`` and ``"gptq"``, what the model is run on to observe its activations: a tensor
             (``model(t)``, e.g. token ids ``[batch, seq]``), a dict of keyword arguments, a list of those, or a
             callable. Keep it disjoint from the data the quantized model is evaluated on.
         calibration_bits: the activation widths the ``"awq"`` search weighs equally (by relative error): one
@@ -147,9 +150,12 @@ def quantize_model(model: nn.Module, group_size: int = 128, skip: Iterable[SkipP
         return next((n for n in names[key] if _matches(n, skip)), None)
 
     channel_weight: dict[int, torch.Tensor | None] = {}
+    hessians: dict[int, torch.Tensor] = {}
     if method == "awq":
         channel_weight = awq_prepare(model, calibration, group_size, calibration_bits,
                                      targets=lambda linear: id(linear) in modules and skipped_as(id(linear)) is None)
+    elif method == "gptq":
+        hessians = collect_hessians(model, calibration)
 
     for key, linear in modules.items():
         first, *others = names[key]
@@ -162,8 +168,12 @@ def quantize_model(model: nn.Module, group_size: int = 128, skip: Iterable[SkipP
             DyQLinear.convert_in_place(linear, group_size=group_size, act_bits=act_bits, flag=flag)
         else:
             weight = linear.weight.detach()
-            qweight, scales = packed_clipped_weight(_even_columns(weight), group_size,
-                                                    _even_columns(channel_weight.get(key)))
+            if key in hessians:
+                codes, scales = gptq_weight(weight, hessians.pop(key), group_size)
+                qweight = reference.pack_int4(_even_columns(codes))
+            else:  # "mse", "awq", and a "gptq" layer the calibration never reached: the clipping search
+                qweight, scales = packed_clipped_weight(_even_columns(weight), group_size,
+                                                        _even_columns(channel_weight.get(key)))
             DyQLinear.convert_in_place(linear, group_size=group_size, act_bits=act_bits, flag=flag, quantize=False)
             linear.qweight.copy_(qweight)
             linear.scales.copy_(scales)

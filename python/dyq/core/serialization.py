@@ -31,7 +31,8 @@ WEIGHTS_NAME = "model.safetensors"
 FORMAT_VERSION = 1
 # The name each weight method (quantize_model's ``method``) is saved under; all write the symmetric INT4
 # format of docs/numerics.md section 1, so any of them loads the same way.
-WEIGHT_METHOD_NAMES = {"rtn": "rtn_int4_symmetric", "mse": "mse_clip_int4_symmetric", "awq": "awq_int4_symmetric"}
+WEIGHT_METHOD_NAMES = {"rtn": "rtn_int4_symmetric", "mse": "mse_clip_int4_symmetric", "awq": "awq_int4_symmetric",
+                      "gptq": "gptq_int4_symmetric"}
 WEIGHT_METHODS = tuple(WEIGHT_METHOD_NAMES.values())
 
 
