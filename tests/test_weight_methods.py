@@ -164,6 +164,22 @@ def test_awq_folding_keeps_the_float_function():
     assert not torch.allclose(model.model.layers[0].input_layernorm.weight, torch.ones(64))
 
 
+def test_awq_folding_keeps_the_float_function_of_a_rotated_model():
+    """After rotate_llama, down_proj's input is rotated at run time, so no scale is folded across it."""
+    from dyq.rotation import rotate_llama
+
+    model = tiny_llama(kv_heads=4)
+    rotate_llama(model)
+    calibration, test_ids = torch.randint(0, 200, (2, 24)), torch.randint(0, 200, (2, 17))
+    with torch.no_grad():
+        expected = model(test_ids).logits
+    down = model.model.layers[0].mlp.down_proj.weight.clone()
+    weight_methods.awq_prepare(model, calibration, 32, (16, 4), targets=lambda linear: True)
+    with torch.no_grad():
+        torch.testing.assert_close(model(test_ids).logits, expected, rtol=1e-4, atol=1e-4)
+    assert torch.equal(model.model.layers[0].mlp.down_proj.weight, down)
+
+
 def test_awq_beats_round_to_nearest_at_low_widths_on_outlier_activations():
     model = tiny_llama()
     calibration, test_ids = torch.randint(0, 200, (4, 24)), torch.randint(0, 200, (2, 24))
