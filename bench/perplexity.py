@@ -60,6 +60,7 @@ BITS = (16, 8, 4, 2)
 # Aims against the same configuration's W4A16 (perplexity ratio).
 AIMS = {8: 1.02, 4: 1.10, 2: 3.0}
 SMOOTHQUANT_ALPHA = 0.5
+DEFAULT_GROUP_SIZE = 64
 # The kinds of linear layer input of a Llama decoder layer (--a4-by-kind), by the layers' last name.
 LAYER_KINDS = {"qkv": ("q_proj", "k_proj", "v_proj"), "o_proj": ("o_proj",), "gate_up": ("gate_proj", "up_proj"),
                "down_proj": ("down_proj",)}
@@ -169,7 +170,8 @@ def main() -> None:
     parser.add_argument("--seq-len", type=int, default=512, help="tokens per evaluation window (default 512)")
     parser.add_argument("--calibration-windows", type=int, default=4)
     parser.add_argument("--calibration-len", type=int, default=256)
-    parser.add_argument("--group-size", type=int, default=64)
+    parser.add_argument("--group-size", type=int, default=DEFAULT_GROUP_SIZE,
+                        help="weights' and activations' group size; another than 64 is named in the row")
     parser.add_argument("--methods", default="rtn,mse,awq,gptq,smoothquant",
                         help="comma-separated quantize_model methods, or smoothquant")
     parser.add_argument("--rotations", default="none,hadamard", help="comma-separated: none, hadamard")
@@ -240,7 +242,9 @@ def main() -> None:
                 flag.bits = bits
                 results[bits] = perplexity(model, eval_ids)
             name = method + (" + hadamard" if rotation != "none" else "")
-            record({"config": name, "rotation": rotation, "method": method,
+            if args.group_size != DEFAULT_GROUP_SIZE:
+                name += f", group {args.group_size}"
+            record({"config": name, "rotation": rotation, "method": method, "group_size": args.group_size,
                     "perplexity": {str(b): v for b, v in results.items()},
                     "ratio_vs_w4a16": {str(b): results[b] / results[16] for b in BITS if b != 16},
                     "quantize_seconds": calibration_seconds, "quantize_cpu_seconds": calibration_cpu_seconds,
@@ -252,7 +256,7 @@ def main() -> None:
                 start, cpu_start = time.time(), time.process_time()
                 by_kind = one_kind_at(model, flag, eval_ids, kind_bits, others_bits)
                 record({"config": name, "kind": kind, "rotation": rotation, "method": method,
-                        "kind_bits": kind_bits, "others_bits": others_bits,
+                        "group_size": args.group_size, "kind_bits": kind_bits, "others_bits": others_bits,
                         "perplexity": by_kind, "layers": {k: list(v) for k, v in LAYER_KINDS.items()},
                         "w4a16": results[16], "w4a4": results[4],
                         "ratio_vs_w4a16": {k: v / results[16] for k, v in by_kind.items()},
