@@ -55,6 +55,7 @@ class QuantizationReport:
     skipped: dict[str, str] = field(default_factory=dict)
     shared: dict[str, list[str]] = field(default_factory=dict)
     already_quantized: list[str] = field(default_factory=list)
+    min_act_bits: dict[str, int] = field(default_factory=dict)
     linear_bytes_before: int = 0
     linear_bytes_after: int = 0
     model_bytes_before: int = 0
@@ -83,6 +84,9 @@ class QuantizationReport:
             f"({100 * self.model_ratio:.1f} %)",
         ]
         lines += [f"  shared {name}: also held as {', '.join(others)}" for name, others in self.shared.items()]
+        if self.min_act_bits:
+            lines.append(f"  {len(self.min_act_bits)} layers never run below "
+                         f"{', '.join(f'A{b}' for b in sorted(set(self.min_act_bits.values())))} (min_act_bits)")
         if self.already_quantized:
             lines.append(f"  {len(self.already_quantized)} layers were DyQLinear already")
         lines += [f"  skipped {name}: {why}" for name, why in self.skipped.items()]
@@ -91,7 +95,7 @@ class QuantizationReport:
 
 def quantize_model(model: nn.Module, group_size: int = 128, skip: Iterable[SkipPattern] = DEFAULT_SKIP,
                    act_bits: int = 16, flag: PrecisionFlag | None = None, method: str = "rtn", calibration=None,
-                   calibration_bits=DEFAULT_CALIBRATION_BITS) -> QuantizationReport:
+                   calibration_bits=DEFAULT_CALIBRATION_BITS, min_act_bits=None) -> QuantizationReport:
     """Convert every ``nn.Linear`` of ``model`` in place to a :class:`DyQLinear` with INT4 weights.
 
     Args:
@@ -116,6 +120,9 @@ def quantize_model(model: nn.Module, group_size: int = 128, skip: Iterable[SkipP
             callable. Keep it disjoint from the data the quantized model is evaluated on.
         calibration_bits: the activation widths the ``"awq"`` search weighs equally (by relative error): one
             weight set serves every width, so by default all of them, (16, 8, 4, 2).
+        min_act_bits: ``{pattern: bits}``, patterns as in ``skip``: the matching converted layers never run
+            below ``bits`` (a floor on the flag, :class:`DyQLinear`), e.g. ``{"gate_proj": 8, "up_proj": 8}``
+            (docs/quantization.md: where a Llama's A4 error comes from).
 
     Each Linear is converted in place (its class becomes DyQLinear), so a layer that several parents
     share stays one layer, and a bare ``nn.Linear`` passed as ``model`` is itself converted.
@@ -133,6 +140,9 @@ def quantize_model(model: nn.Module, group_size: int = 128, skip: Iterable[SkipP
                          "[batch, seq]) disjoint from the evaluation data")
     if method not in CALIBRATED_METHODS and calibration is not None:
         raise ValueError(f"calibration is only used by methods {CALIBRATED_METHODS}; method={method!r} takes none")
+    floors = dict(min_act_bits or {})
+    for pattern, bits in floors.items():
+        check_bits(bits, f"min_act_bits[{pattern!r}]")
     skip = tuple(skip) if not isinstance(skip, (str, re.Pattern)) else (skip,)
     report = QuantizationReport(group_size=group_size, method=method, model_bytes_before=_module_bytes(model))
 
@@ -178,6 +188,11 @@ def quantize_model(model: nn.Module, group_size: int = 128, skip: Iterable[SkipP
             linear.qweight.copy_(qweight)
             linear.scales.copy_(scales)
         linear.weight_method = method
+        floor = max((bits for pattern, bits in floors.items() if any(_matches(n, (pattern,)) for n in names[key])),
+                    default=None)
+        if floor is not None:
+            linear.set_min_act_bits(floor)
+            report.min_act_bits[first] = floor
         report.linear_bytes_after += linear.weight_bytes()
         report.converted.append(first)
         if others:
