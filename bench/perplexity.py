@@ -24,8 +24,10 @@ W4A16, W4A8, W4A4 and W4A2 through the precision flag. ``--methods`` takes quant
 activation maxima, then round-to-nearest). ``--a4-by-kind`` adds, per configuration, the perplexity when
 only one kind of layer input (q/k/v, o_proj, gate/up, down_proj) is quantized to 4 bits and every other
 layer runs at 16: where the W4A4 error comes from; ``--a8-by-kind`` the converse, one kind at 8 bits and
-every other layer at 4 (what keeping that kind at A8 would buy). Writes bench/results/perplexity.json (after every row,
-so an interrupted run keeps what it measured) and prints the table. ``--merge`` adds the rows to the JSON
+every other layer at 4 (what keeping that kind at A8 would buy); ``--min-act-bits gate_up=8`` quantizes
+with that floor (``quantize_model(min_act_bits=...)``) and names it in the row. Writes
+bench/results/perplexity.json (after every row, so an interrupted run keeps what it measured) and prints
+the table. ``--merge`` adds the rows to the JSON
 that is there instead (a row of the same configuration is replaced, the others kept; the file is locked
 while it is rewritten, so runs in parallel may merge into it), each merged row carrying its own
 environment; ``--skip-fp32`` leaves out the float rows.
@@ -35,10 +37,12 @@ from __future__ import annotations
 import argparse
 import copy
 import fcntl
+import hashlib
 import importlib.util
 import json
 import math
 import os
+import tempfile
 import time
 from pathlib import Path
 
@@ -110,15 +114,17 @@ def perplexity(model, ids: torch.Tensor) -> float:
     return math.exp(total / tokens)
 
 
-def quantize(base, method: str, group_size: int, calibration_ids: torch.Tensor):
-    """(model, flag): a copy of ``base`` with one frozen INT4 weight set chosen by ``method``."""
+def quantize(base, method: str, group_size: int, calibration_ids: torch.Tensor, floors: dict[str, int]):
+    """(model, flag): a copy of ``base`` with one frozen INT4 weight set chosen by ``method``; the layer kinds
+    of ``floors`` never run below their width."""
     model, flag = copy.deepcopy(base), dyq.PrecisionFlag(16)
     if method == "smoothquant":
         smooth_llama(model, activation_maxima(model, lambda: model(calibration_ids)), alpha=SMOOTHQUANT_ALPHA)
         method = "rtn"
     calibrated = method in dyq.core.weight_methods.CALIBRATED_METHODS
     dyq.quantize_model(model, group_size=group_size, flag=flag, method=method,
-                       calibration=calibration_ids if calibrated else None)
+                       calibration=calibration_ids if calibrated else None,
+                       min_act_bits={name: bits for kind, bits in floors.items() for name in LAYER_KINDS[kind]})
     return model, flag
 
 
@@ -154,7 +160,9 @@ class Results:
             return
         row = {**row, "environment": self.payload["environment"], "run": self.payload["run"]}
         self.path.parent.mkdir(parents=True, exist_ok=True)
-        with open(self.path.with_suffix(".lock"), "w") as lock:
+        # The JSON is replaced atomically on every write, so the lock is a file of its own, outside the tree.
+        lock_name = f"dyq-perplexity-{hashlib.sha1(str(self.path.resolve()).encode()).hexdigest()[:12]}.lock"
+        with open(Path(tempfile.gettempdir()) / lock_name, "w") as lock:
             fcntl.flock(lock, fcntl.LOCK_EX)
             existing = json.loads(self.path.read_text()) if self.path.is_file() else {**self.payload, "rows": []}
             key = (row["config"], row.get("kind", "widths"))
@@ -181,6 +189,9 @@ def main() -> None:
     parser.add_argument("--skip-fp32", action="store_true", help="no fp32 (and fp32 + rotation) rows")
     parser.add_argument("--a4-by-kind", action="store_true",
                         help="also the perplexity with one layer kind at A4, the rest at A16")
+    parser.add_argument("--min-act-bits", default="", metavar="KIND=BITS,...",
+                        help="layer kinds that never run below a width (quantize_model's min_act_bits), "
+                             "e.g. gate_up=8; named in the row")
     parser.add_argument("--a8-by-kind", action="store_true",
                         help="also the perplexity with one layer kind at A8, the rest at A4")
     args = parser.parse_args()
@@ -188,6 +199,9 @@ def main() -> None:
         args.windows, args.seq_len, args.methods, args.rotations = 2, 128, "rtn,mse", "none"
     torch.set_num_threads(args.threads)
     methods, rotations = args.methods.split(","), args.rotations.split(",")
+    floors = {kind: int(bits) for kind, bits in (item.split("=") for item in args.min_act_bits.split(",") if item)}
+    if set(floors) - set(LAYER_KINDS):
+        raise SystemExit(f"--min-act-bits: layer kinds are {tuple(LAYER_KINDS)}, got {tuple(floors)}")
 
     float_model, tokenizer = load_checkpoint()
     eval_ids = windows(tokenizer, EVAL_TEXT, args.windows, args.seq_len)
@@ -235,7 +249,7 @@ def main() -> None:
             raise SystemExit(f"--rotations: unknown rotation {rotation!r} (none, hadamard)")
         for method in methods:
             start, cpu_start = time.time(), time.process_time()
-            model, flag = quantize(base, method, args.group_size, calibration_ids)
+            model, flag = quantize(base, method, args.group_size, calibration_ids, floors)
             calibration_seconds, calibration_cpu_seconds = time.time() - start, time.process_time() - cpu_start
             results = {}
             for bits in BITS:
@@ -244,7 +258,9 @@ def main() -> None:
             name = method + (" + hadamard" if rotation != "none" else "")
             if args.group_size != DEFAULT_GROUP_SIZE:
                 name += f", group {args.group_size}"
+            name += "".join(f", {kind} >= A{bits}" for kind, bits in floors.items())
             record({"config": name, "rotation": rotation, "method": method, "group_size": args.group_size,
+                    "min_act_bits": floors,
                     "perplexity": {str(b): v for b, v in results.items()},
                     "ratio_vs_w4a16": {str(b): results[b] / results[16] for b in BITS if b != 16},
                     "quantize_seconds": calibration_seconds, "quantize_cpu_seconds": calibration_cpu_seconds,
