@@ -110,9 +110,9 @@ def quantize_model(model: nn.Module, group_size: int = 128, skip: Iterable[SkipP
         flag: a :class:`PrecisionFlag` that every converted layer reads at run time, so that one write
             switches the whole model (the dispatcher's b*_t).
         method: how the INT4 codes and scales are chosen (``dyq.core.weight_methods``, docs/numerics.md
-            section 1a): ``"rtn"`` (round-to-nearest from the absmax), ``"mse"`` (per-group clipping search)
-            , ``"awq"`` (activation-aware scaling folded into the float model, then clipping weighted by
-            the activations; needs ``calibration``) or ``"gptq"`` (error-compensating rounding from each
+            section 1a): ``"rtn"`` (round-to-nearest from the absmax), ``"mse"`` (per-group clipping
+            search), ``"awq"`` (activation-aware scaling folded into the float model, then clipping weighted
+            by the activations; needs ``calibration``) or ``"gptq"`` (error-compensating rounding from each
             layer's Hessian over the float model's calibration inputs; needs ``calibration``). Every method
             writes the same format.
         calibration: for ``"awq"`` and ``"gptq"``, what the model is run on to observe its activations: a tensor
