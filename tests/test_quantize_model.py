@@ -201,3 +201,41 @@ def test_set_precision_needs_dyq_layers():
         dyq.set_precision(torch.nn.Linear(4, 4), 4)
     with pytest.raises(ValueError, match="bits must be one of"):
         dyq.set_precision(torch.nn.Linear(4, 4), 3)
+
+
+def test_min_act_bits_keeps_the_named_layers_at_or_above_their_floor():
+    """gate/up with a floor of 8: at flag 4 they compute exactly what they compute at flag 8, the other layers
+    follow the flag; at 16 the floor changes nothing."""
+    model, flag = tiny_llama(), dyq.PrecisionFlag(4)
+    report = dyq.quantize_model(model, group_size=32, flag=flag, min_act_bits={"gate_proj": 8, "up_proj": 8})
+    assert set(report.min_act_bits) == {f"model.layers.{i}.mlp.{n}" for i in range(2) for n in ("gate_proj", "up_proj")}
+    assert "4 layers never run below A8" in str(report)
+    mlp, attn = model.model.layers[0].mlp, model.model.layers[0].self_attn
+    x = torch.randn(3, 128)
+    for bits in (2, 4, 8, 16):
+        flag.bits = bits
+        assert mlp.up_proj.precision == max(bits, 8) and attn.q_proj.precision == bits
+        expected = reference.gemm(x, mlp.up_proj.qweight, mlp.up_proj.scales, 32, max(bits, 8)).float()
+        torch.testing.assert_close(mlp.up_proj(x), expected, rtol=1e-4, atol=1e-4)
+        q_expected = reference.gemm(x, attn.q_proj.qweight, attn.q_proj.scales, 32, bits).float()
+        if bits != 16:  # the W4A16 fallback may round x to bf16 (docs/numerics.md)
+            torch.testing.assert_close(attn.q_proj(x), q_expected, rtol=1e-4, atol=1e-4)
+    assert "min_act_bits=8" in repr(mlp.up_proj)
+
+
+def test_min_act_bits_is_saved_and_loaded(tmp_path):
+    model, flag = tiny_llama(), dyq.PrecisionFlag(2)
+    dyq.quantize_model(model, group_size=32, flag=flag, min_act_bits={"down_proj": 8})
+    dyq.save_quantized(model, tmp_path)
+    loaded = dyq.load_quantized(transformers.LlamaForCausalLM(model.config), tmp_path)
+    floors = {n: m.min_act_bits for n, m in loaded.named_modules() if isinstance(m, dyq.DyQLinear)}
+    assert {n for n, b in floors.items() if b == 8} == {"model.layers.0.mlp.down_proj", "model.layers.1.mlp.down_proj"}
+    assert all(b == 2 for n, b in floors.items() if "down_proj" not in n)
+    ids = torch.randint(0, 512, (1, 9))
+    with torch.no_grad():
+        torch.testing.assert_close(loaded(ids).logits, model(ids).logits)
+
+
+def test_min_act_bits_refuses_a_width_that_does_not_exist():
+    with pytest.raises(ValueError, match=r"min_act_bits\['gate_proj'\]"):
+        dyq.quantize_model(tiny_llama(), min_act_bits={"gate_proj": 6})

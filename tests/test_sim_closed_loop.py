@@ -280,7 +280,7 @@ def test_smoothquant_configuration_calibrates_on_training_data(policy, env):
         PolicyRunner(policy).quantized_policy("smoothquant")
 
 
-@pytest.mark.parametrize("method", ["mse", "awq"])
+@pytest.mark.parametrize("method", ["mse", "awq", "gptq"])
 def test_weight_method_configurations_share_one_weight_set(policy, env, method):
     rng = np.random.default_rng(6)
     first = envs.observation_vector(TASK, envs.reset_env(env, 0))
@@ -294,11 +294,11 @@ def test_weight_method_configurations_share_one_weight_set(policy, env, method):
     a = runner.quantized_policy(method).model.model.layers[0].mlp.down_proj
     b = runner.quantized_policy("rtn").model.model.layers[0].mlp.down_proj
     assert not torch.equal(a.scales, b.scales)
-    if method == "awq":
+    if method in ("awq", "gptq"):
         with pytest.raises(ValueError, match="calibration data"):
-            PolicyRunner(policy).quantized_policy("awq")
+            PolicyRunner(policy).quantized_policy(method)
     with pytest.raises(ValueError, match="weights must be one of"):
-        runner.quantized_policy("gptq")
+        runner.quantized_policy("spinquant")
 
 
 def test_every_weight_method_is_compared_against_round_to_nearest():

@@ -14,7 +14,8 @@ from helpers import assert_gemm_close
 import dyq
 from dyq import reference
 from dyq.core import weight_methods
-from dyq.core.weight_methods import CLIP_RATIOS, awq_channel_scales, clipped_weight, search_awq_scales
+from dyq.core.weight_methods import (CLIP_RATIOS, awq_channel_scales, clipped_weight, collect_hessians, gptq_weight,
+                                     search_awq_scales)
 
 transformers = pytest.importorskip("transformers")
 
@@ -42,14 +43,14 @@ def brute_force_group(w, h, ratios):
     return best
 
 
-@pytest.mark.parametrize("method", ["rtn", "mse", "awq"])
+@pytest.mark.parametrize("method", ["rtn", "mse", "awq", "gptq"])
 @pytest.mark.parametrize("in_features,group_size", [(64, 32), (80, 32), (71, 64)])
 def test_every_method_writes_the_documented_format(method, in_features, group_size):
     """Codes in [-8, 7], fp32 scales [N, ceil(K/G)] (the last group the remainder, an odd K padded with a zero
     column), and the kernels' forward equal to the float64 reference GEMM on those buffers."""
     torch.manual_seed(1)
     model = torch.nn.Sequential(torch.nn.Linear(in_features, 24))
-    calibration = torch.randn(16, in_features) if method == "awq" else None
+    calibration = torch.randn(16, in_features) if method in ("awq", "gptq") else None
     dyq.quantize_model(model, group_size=group_size, skip=(), method=method, calibration=calibration)
     layer = model[0]
     k = in_features + in_features % 2
@@ -163,6 +164,22 @@ def test_awq_folding_keeps_the_float_function():
     assert not torch.allclose(model.model.layers[0].input_layernorm.weight, torch.ones(64))
 
 
+def test_awq_folding_keeps_the_float_function_of_a_rotated_model():
+    """After rotate_llama, down_proj's input is rotated at run time, so no scale is folded across it."""
+    from dyq.rotation import rotate_llama
+
+    model = tiny_llama(kv_heads=4)
+    rotate_llama(model)
+    calibration, test_ids = torch.randint(0, 200, (2, 24)), torch.randint(0, 200, (2, 17))
+    with torch.no_grad():
+        expected = model(test_ids).logits
+    down = model.model.layers[0].mlp.down_proj.weight.clone()
+    weight_methods.awq_prepare(model, calibration, 32, (16, 4), targets=lambda linear: True)
+    with torch.no_grad():
+        torch.testing.assert_close(model(test_ids).logits, expected, rtol=1e-4, atol=1e-4)
+    assert torch.equal(model.model.layers[0].mlp.down_proj.weight, down)
+
+
 def test_awq_beats_round_to_nearest_at_low_widths_on_outlier_activations():
     model = tiny_llama()
     calibration, test_ids = torch.randint(0, 200, (4, 24)), torch.randint(0, 200, (2, 24))
@@ -192,8 +209,10 @@ def test_the_method_is_reported_and_saved(tmp_path):
 
 
 @pytest.mark.parametrize("kwargs,match", [
-    ({"method": "gptq"}, "method must be one of"),
+    ({"method": "spinquant"}, "method must be one of"),
     ({"method": "awq"}, "needs calibration"),
+    ({"method": "gptq"}, "needs calibration"),
+    ({"method": "gptq", "calibration": torch.randn(2, 4)}, "calibration does not fit the model"),
     ({"method": "mse", "calibration": torch.zeros(1, 4, dtype=torch.long)}, "calibration is only used"),
     ({"method": "awq", "calibration": torch.zeros(0, 4, dtype=torch.long)}, "calibration is an empty tensor"),
     ({"method": "awq", "calibration": torch.randn(2, 4)}, "calibration does not fit the model"),
@@ -213,3 +232,166 @@ def test_bad_arguments_are_refused_by_name(kwargs, match):
 def test_bad_channel_weight_shape_is_refused():
     with pytest.raises(ValueError, match="channel_weight must have shape"):
         clipped_weight(torch.randn(4, 64), 32, torch.ones(63))
+
+
+# ---- GPTQ ---------------------------------------------------------------------------------------------------
+
+def correlated_inputs(tokens, features, generator):
+    """Inputs whose channels are strongly correlated (a random mixing of a few latent factors plus noise)
+    and of unequal magnitude, as a layer's real inputs are."""
+    latent = torch.randn(tokens, features // 4, generator=generator, dtype=torch.float64)
+    mixing = torch.randn(features // 4, features, generator=generator, dtype=torch.float64)
+    noise = 0.1 * torch.randn(tokens, features, generator=generator, dtype=torch.float64)
+    return (latent @ mixing + noise) * torch.linspace(0.2, 3, features, dtype=torch.float64)
+
+
+def hessian_of(x):
+    return 2 * x.T @ x / x.shape[0]
+
+
+def gptq_float64(weight, hessian, group_size, damping=0.01):
+    """GPTQ in its Optimal Brain Surgeon form, one column at a time, float64, no Cholesky: quantize column q,
+    move its error onto the later columns by ``-err / [H^-1]_qq * [H^-1]_{q,:}``, then remove q from the
+    inverse Hessian (``H^-1 -= H^-1[:, q] H^-1[q, :] / [H^-1]_qq``). A group's scale: the clipping search
+    (weighted by diag H) on the group's weights when q enters it."""
+    w = weight.double().clone()
+    h = hessian.double().clone()
+    h += damping * h.diagonal().mean() * torch.eye(h.shape[0], dtype=torch.float64)
+    h_inverse = torch.linalg.inv(h)
+    k = w.shape[1]
+    codes = torch.zeros_like(w)
+    scales = torch.zeros(w.shape[0], -(-k // group_size), dtype=torch.float64)
+    for q in range(k):
+        if q % group_size == 0:
+            _, group_scale = clipped_weight(w[:, q:q + group_size], group_size, h.diagonal()[q:q + group_size].float())
+            scales[:, q // group_size] = group_scale[:, 0].double()
+        s = scales[:, q // group_size]
+        codes[:, q] = torch.round(w[:, q] / s).clamp(-8, 7)
+        error = (w[:, q] - s * codes[:, q]) / h_inverse[q, q]
+        w[:, q:] -= error[:, None] * h_inverse[q, q:][None, :]
+        h_inverse -= torch.outer(h_inverse[:, q], h_inverse[q, :]) / h_inverse[q, q]
+    return codes, scales
+
+
+def dequantized(codes, scales, group_size):
+    grouped = reference._grouped(codes.double(), group_size) * scales.double()[..., None]
+    return reference._ungrouped(grouped, codes.shape[1])
+
+
+@pytest.mark.parametrize("in_features,group_size,block", [(96, 32, 128), (200, 64, 64), (150, 32, 40)])
+def test_gptq_equals_the_column_by_column_float64_form(in_features, group_size, block):
+    """The blocked Cholesky implementation (a partial last group and, for block 40, blocks rounded up to a
+    multiple of the group) quantizes exactly as the OBS form of the algorithm does."""
+    gen = torch.Generator().manual_seed(4)
+    x = correlated_inputs(512, in_features, gen)
+    weight = torch.randn(24, in_features, generator=gen, dtype=torch.float64).float()
+    codes, scales = gptq_weight(weight, hessian_of(x), group_size, block=block)
+    expected_codes, expected_scales = gptq_float64(weight, hessian_of(x), group_size)
+    torch.testing.assert_close(scales.double(), expected_scales, rtol=1e-6, atol=0)
+    assert torch.equal(codes.double(), expected_codes)
+    assert codes.dtype == torch.int8 and scales.dtype == torch.float32
+
+
+def test_gptq_beats_round_to_nearest_on_fresh_correlated_inputs():
+    """On a least-squares toy problem the output error ||X W^T - X Wq^T|| on *new* inputs from the same
+    distribution is clearly below round-to-nearest's and the clipping search's."""
+    gen = torch.Generator().manual_seed(5)
+    k, group_size = 128, 32
+    weight = torch.randn(64, k, generator=gen, dtype=torch.float64).float()
+    mixing = torch.randn(k // 4, k, generator=gen, dtype=torch.float64)
+    column_scale = torch.linspace(0.2, 3, k, dtype=torch.float64)
+
+    def draw(tokens, seed):  # the same mixing and scaling, new tokens
+        g = torch.Generator().manual_seed(seed)
+        latent = torch.randn(tokens, k // 4, generator=g, dtype=torch.float64)
+        return (latent @ mixing + 0.1 * torch.randn(tokens, k, generator=g, dtype=torch.float64)) * column_scale
+
+    calibration, test = draw(1024, 7), draw(1024, 8)
+    target = test @ weight.double().T
+    errors = {}
+    codes, scales = gptq_weight(weight, hessian_of(calibration), group_size)
+    errors["gptq"] = (test @ dequantized(codes, scales, group_size).T - target).norm().item()
+    codes, scales = reference.quantize_weight(weight, group_size)
+    errors["rtn"] = (test @ dequantized(codes, scales, group_size).T - target).norm().item()
+    codes, scales = clipped_weight(weight, group_size)
+    errors["mse"] = (test @ dequantized(codes, scales, group_size).T - target).norm().item()
+    assert errors["gptq"] < 0.7 * errors["rtn"] and errors["gptq"] < 0.7 * errors["mse"], errors
+
+
+def test_gptq_with_a_diagonal_hessian_is_the_weighted_clipping_search():
+    """Uncorrelated inputs (H diagonal): no error can be moved to another column, so GPTQ is exactly the
+    clipping search weighted by H's damped diagonal."""
+    gen = torch.Generator().manual_seed(9)
+    weight = torch.randn(16, 96, generator=gen)
+    diagonal = torch.rand(96, generator=gen, dtype=torch.float64) * 3 + 0.1
+    codes, scales = gptq_weight(weight, torch.diag(diagonal), 32)
+    expected_codes, expected_scales = clipped_weight(weight, 32, (diagonal + 0.01 * diagonal.mean()).float())
+    assert torch.equal(codes, expected_codes)
+    torch.testing.assert_close(scales, expected_scales, rtol=0, atol=0)
+
+
+def test_gptq_of_a_single_group_column_pair_has_the_closed_form_update():
+    """Two columns, one group: column 0 is rounded, and column 1 receives exactly
+    ``-err0 * [H^-1]_01 / [H^-1]_00`` before it is rounded (the least-squares optimum for column 1 given
+    column 0's rounding), in plain float64 arithmetic."""
+    h = torch.tensor([[2.0, 1.2], [1.2, 1.0]], dtype=torch.float64)
+    weight = torch.tensor([[0.33, -0.71], [0.9, 0.05]])
+    codes, scales = gptq_weight(weight, h, 32, damping=1e-12)
+    h_inverse = torch.linalg.inv(h + 1e-12 * h.diagonal().mean() * torch.eye(2, dtype=torch.float64))
+    for row in range(2):
+        s = scales[row, 0].item()
+        w0, w1 = weight[row].double().tolist()
+        q0 = max(-8, min(7, round(w0 / s)))
+        w1_updated = w1 - (w0 - s * q0) * h_inverse[0, 1].item() / h_inverse[0, 0].item()
+        assert codes[row].tolist() == [q0, max(-8, min(7, round(w1_updated / s)))]
+
+
+def test_gptq_zeroes_columns_no_input_reaches():
+    gen = torch.Generator().manual_seed(10)
+    x = correlated_inputs(256, 64, gen)
+    x[:, 7] = 0
+    codes, _ = gptq_weight(torch.randn(8, 64, generator=gen), hessian_of(x), 32)
+    assert (codes[:, 7] == 0).all()
+
+
+def test_collect_hessians_is_two_x_transpose_x_over_n_of_the_float_inputs():
+    torch.manual_seed(11)
+    model = torch.nn.Sequential(torch.nn.Linear(12, 8), torch.nn.ReLU(), torch.nn.Linear(8, 4))
+    batches = [torch.randn(5, 12), torch.randn(3, 12)]
+    hessians = collect_hessians(model, batches)
+    x = torch.cat(batches).double()
+    torch.testing.assert_close(hessians[id(model[0])], hessian_of(x))
+    with torch.no_grad():
+        hidden = torch.relu(model[0](torch.cat(batches))).double()
+    torch.testing.assert_close(hessians[id(model[2])], hessian_of(hidden), rtol=1e-5, atol=1e-6)
+
+
+@pytest.mark.parametrize("kwargs,match", [
+    ({"hessian": torch.eye(63)}, "hessian must have shape"),
+    ({"hessian": torch.full((64, 64), float("nan"))}, "hessian contains NaN"),
+    ({"hessian": -torch.eye(64)}, "positive semi-definite"),
+    ({"hessian": 3 * torch.ones(64, 64) - 2 * torch.eye(64)}, "positive semi-definite"),  # indefinite
+    ({"hessian": torch.eye(64), "damping": 0.0}, "damping must be > 0"),
+    ({"hessian": torch.eye(64), "weight": torch.randn(64)}, "weight must be 2-D"),
+])
+def test_gptq_bad_inputs_are_refused_by_name(kwargs, match):
+    arguments = {"weight": torch.randn(4, 64), "group_size": 32, **kwargs}
+    with pytest.raises(ValueError, match=match):
+        gptq_weight(**arguments)
+
+
+def test_gptq_on_a_llama_beats_round_to_nearest_and_saves(tmp_path):
+    model = tiny_llama()
+    calibration, test_ids = torch.randint(0, 200, (4, 24)), torch.randint(0, 200, (2, 24))
+    with torch.no_grad():
+        expected = model(test_ids).logits
+    errors = {}
+    for method in ("rtn", "gptq"):
+        quantized, flag = copy.deepcopy(model), dyq.PrecisionFlag(16)
+        dyq.quantize_model(quantized, group_size=32, flag=flag, method=method,
+                           calibration=calibration if method == "gptq" else None)
+        with torch.no_grad():
+            errors[method] = ((quantized(test_ids).logits - expected) ** 2).mean().item()
+    assert errors["gptq"] < errors["rtn"]
+    dyq.save_quantized(quantized, tmp_path)
+    assert json.loads((tmp_path / "dyq_config.json").read_text())["weight_method"] == "gptq_int4_symmetric"

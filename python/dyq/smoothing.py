@@ -12,7 +12,8 @@ The division ``x / s`` costs nothing at run time when it is folded into the oper
 
 * q, k, v read ``input_layernorm(h)``: the RMSNorm weight is divided by s (one s shared by the three);
 * gate and up read ``post_attention_layernorm(h)``: likewise;
-* down reads ``silu(gate(x)) * up(x)``: the rows of ``up`` are divided by s (the product is linear in it);
+* down reads ``silu(gate(x)) * up(x)``: the rows of ``up`` are divided by s (the product is linear in it),
+  unless :func:`dyq.rotation.rotate_llama` rotates down's input at run time (then it is not smoothed);
 * o reads the attention output, which is linear in ``v``: the rows of ``v_proj`` are divided by s (only
   when every query head has its own key/value head, so that each channel of v feeds one channel of o).
 
@@ -103,7 +104,10 @@ def llama_scale_groups(model: nn.Module, strict: bool = True) -> list[ScaleGroup
         attn, mlp = layer.self_attn, layer.mlp
         groups.append(ScaleGroup([attn.q_proj, attn.k_proj, attn.v_proj], _divide_norm(layer.input_layernorm)))
         groups.append(ScaleGroup([mlp.gate_proj, mlp.up_proj], _divide_norm(layer.post_attention_layernorm)))
-        groups.append(ScaleGroup([mlp.down_proj], _divide_rows(mlp.up_proj)))
+        # After rotate_llama, down_proj reads (silu(gate) * up) R, rotated at run time: a scale on up's rows
+        # no longer lines up with down_proj's input channels, so that group is left unscaled.
+        if getattr(mlp, "down_proj_rotation", None) is None:
+            groups.append(ScaleGroup([mlp.down_proj], _divide_rows(mlp.up_proj)))
         if attn.v_proj.out_features == attn.o_proj.in_features:
             groups.append(ScaleGroup([attn.o_proj], _divide_rows(attn.v_proj)))
     return groups

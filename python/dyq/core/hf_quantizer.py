@@ -29,7 +29,7 @@ class DyQConfig(QuantizationConfigMixin):
     """dyq's quantization config: INT4 weights in groups of ``group_size``, activations at ``act_bits``
     (the flag's initial value), the layers of ``modules_to_not_convert`` kept in full precision.
     ``weight_method`` is the saved name of a :func:`dyq.quantize_model` method; quantizing on load runs
-    the calibration-free ones (round-to-nearest, the clipping search), while a calibrated model (AWQ) is
+    the calibration-free ones (round-to-nearest, the clipping search), while a calibrated model (AWQ, GPTQ) is
     quantized with ``dyq.quantize_model(..., calibration=...)`` and then saved. ``rotation`` leaves room
     for later options (no rotation is loaded this way)."""
 

@@ -55,9 +55,16 @@ class DyQLinear(nn.Module):
 
     ``weight_method`` names how the codes were chosen (``quantize_model``'s ``method``); every method writes
     the same format, so it is a record, not a switch.
+
+    ``min_act_bits`` (default 2: none) is a floor on the width: a layer whose flag asks for fewer bits runs
+    at ``min_act_bits`` instead (``quantize_model(min_act_bits=...)`` keeps, for example, gate/up at A8 while
+    the rest of the model runs at A4). The floor is applied on the host when the layer is called (the flag is
+    read there), so it is not part of what a captured graph replays; without a floor the kernel reads the
+    flag itself, as before.
     """
 
     weight_method = "rtn"
+    min_act_bits = 2
 
     def __init__(self, in_features: int, out_features: int, bias: bool = True, *, group_size: int = 128,
                  act_bits: int = 16, flag: PrecisionFlag | None = None, device=None,
@@ -148,7 +155,12 @@ class DyQLinear(nn.Module):
     @property
     def precision(self) -> int:
         """The bit-width the next forward will use."""
-        return self.flag.bits if self.flag is not None else self.act_bits
+        bits = self.flag.bits if self.flag is not None else self.act_bits
+        return max(bits, self.min_act_bits)
+
+    def set_min_act_bits(self, bits: int) -> None:
+        """Run at ``bits`` or more whatever the flag says (2: no floor)."""
+        self.min_act_bits = check_bits(bits, "min_act_bits")
 
     # -- forward -----------------------------------------------------------------------------------------------
     def forward(self, x: torch.Tensor) -> torch.Tensor:
@@ -164,7 +176,10 @@ class DyQLinear(nn.Module):
         bias = self.bias
         if bias is not None and bias.dtype != x.dtype:
             bias = bias.to(x.dtype)
-        act_bits = self.flag.tensor if self.flag is not None else self.act_bits
+        if self.flag is None or (self.min_act_bits > 2 and self.flag.bits < self.min_act_bits):
+            act_bits = self.precision
+        else:
+            act_bits = self.flag.tensor
         return ops.gemm(x, self.qweight, self.scales, self.group_size, act_bits, bias)
 
     # -- module plumbing ---------------------------------------------------------------------------------------
@@ -189,5 +204,7 @@ class DyQLinear(nn.Module):
 
     def extra_repr(self) -> str:
         precision = f"flag={self.flag.bits}" if self.flag is not None else f"act_bits={self.act_bits}"
+        if self.min_act_bits > 2:
+            precision += f", min_act_bits={self.min_act_bits}"
         return (f"in_features={self.in_features}, out_features={self.out_features}, bias={self.bias is not None}, "
                 f"weight=int4, group_size={self.group_size}, {precision}")

@@ -12,8 +12,9 @@ from torch import nn
 from ..control.flag import PrecisionFlag
 from .linear import DyQLinear
 from .precision import check_bits, check_group_size
+from . import reference
 from .weight_methods import (CALIBRATED_METHODS, DEFAULT_CALIBRATION_BITS, awq_prepare, check_calibration_bits,
-                             check_method, packed_clipped_weight)
+                             check_method, collect_hessians, gptq_weight, packed_clipped_weight)
 
 SkipPattern = Union[str, Pattern[str]]
 DEFAULT_SKIP = ("lm_head",)
@@ -54,6 +55,7 @@ class QuantizationReport:
     skipped: dict[str, str] = field(default_factory=dict)
     shared: dict[str, list[str]] = field(default_factory=dict)
     already_quantized: list[str] = field(default_factory=list)
+    min_act_bits: dict[str, int] = field(default_factory=dict)
     linear_bytes_before: int = 0
     linear_bytes_after: int = 0
     model_bytes_before: int = 0
@@ -82,6 +84,9 @@ class QuantizationReport:
             f"({100 * self.model_ratio:.1f} %)",
         ]
         lines += [f"  shared {name}: also held as {', '.join(others)}" for name, others in self.shared.items()]
+        if self.min_act_bits:
+            lines.append(f"  {len(self.min_act_bits)} layers never run below "
+                         f"{', '.join(f'A{b}' for b in sorted(set(self.min_act_bits.values())))} (min_act_bits)")
         if self.already_quantized:
             lines.append(f"  {len(self.already_quantized)} layers were DyQLinear already")
         lines += [f"  skipped {name}: {why}" for name, why in self.skipped.items()]
@@ -90,7 +95,7 @@ class QuantizationReport:
 
 def quantize_model(model: nn.Module, group_size: int = 128, skip: Iterable[SkipPattern] = DEFAULT_SKIP,
                    act_bits: int = 16, flag: PrecisionFlag | None = None, method: str = "rtn", calibration=None,
-                   calibration_bits=DEFAULT_CALIBRATION_BITS) -> QuantizationReport:
+                   calibration_bits=DEFAULT_CALIBRATION_BITS, min_act_bits=None) -> QuantizationReport:
     """Convert every ``nn.Linear`` of ``model`` in place to a :class:`DyQLinear` with INT4 weights.
 
     Args:
@@ -105,14 +110,19 @@ def quantize_model(model: nn.Module, group_size: int = 128, skip: Iterable[SkipP
         flag: a :class:`PrecisionFlag` that every converted layer reads at run time, so that one write
             switches the whole model (the dispatcher's b*_t).
         method: how the INT4 codes and scales are chosen (``dyq.core.weight_methods``, docs/numerics.md
-            section 1a): ``"rtn"`` (round-to-nearest from the absmax), ``"mse"`` (per-group clipping search)
-            or ``"awq"`` (activation-aware scaling folded into the float model, then clipping weighted by
-            the activations; needs ``calibration``). Every method writes the same format.
-        calibration: for ``"awq"``, what the model is run on to observe its activations: a tensor
+            section 1a): ``"rtn"`` (round-to-nearest from the absmax), ``"mse"`` (per-group clipping
+            search), ``"awq"`` (activation-aware scaling folded into the float model, then clipping weighted
+            by the activations; needs ``calibration``) or ``"gptq"`` (error-compensating rounding from each
+            layer's Hessian over the float model's calibration inputs; needs ``calibration``). Every method
+            writes the same format.
+        calibration: for ``"awq"`` and ``"gptq"``, what the model is run on to observe its activations: a tensor
             (``model(t)``, e.g. token ids ``[batch, seq]``), a dict of keyword arguments, a list of those, or a
             callable. Keep it disjoint from the data the quantized model is evaluated on.
         calibration_bits: the activation widths the ``"awq"`` search weighs equally (by relative error): one
             weight set serves every width, so by default all of them, (16, 8, 4, 2).
+        min_act_bits: ``{pattern: bits}``, patterns as in ``skip``: the matching converted layers never run
+            below ``bits`` (a floor on the flag, :class:`DyQLinear`), e.g. ``{"gate_proj": 8, "up_proj": 8}``
+            (docs/quantization.md: where a Llama's A4 error comes from).
 
     Each Linear is converted in place (its class becomes DyQLinear), so a layer that several parents
     share stays one layer, and a bare ``nn.Linear`` passed as ``model`` is itself converted.
@@ -130,6 +140,9 @@ def quantize_model(model: nn.Module, group_size: int = 128, skip: Iterable[SkipP
                          "[batch, seq]) disjoint from the evaluation data")
     if method not in CALIBRATED_METHODS and calibration is not None:
         raise ValueError(f"calibration is only used by methods {CALIBRATED_METHODS}; method={method!r} takes none")
+    floors = dict(min_act_bits or {})
+    for pattern, bits in floors.items():
+        check_bits(bits, f"min_act_bits[{pattern!r}]")
     skip = tuple(skip) if not isinstance(skip, (str, re.Pattern)) else (skip,)
     report = QuantizationReport(group_size=group_size, method=method, model_bytes_before=_module_bytes(model))
 
@@ -147,9 +160,12 @@ def quantize_model(model: nn.Module, group_size: int = 128, skip: Iterable[SkipP
         return next((n for n in names[key] if _matches(n, skip)), None)
 
     channel_weight: dict[int, torch.Tensor | None] = {}
+    hessians: dict[int, torch.Tensor] = {}
     if method == "awq":
         channel_weight = awq_prepare(model, calibration, group_size, calibration_bits,
                                      targets=lambda linear: id(linear) in modules and skipped_as(id(linear)) is None)
+    elif method == "gptq":
+        hessians = collect_hessians(model, calibration)
 
     for key, linear in modules.items():
         first, *others = names[key]
@@ -162,12 +178,21 @@ def quantize_model(model: nn.Module, group_size: int = 128, skip: Iterable[SkipP
             DyQLinear.convert_in_place(linear, group_size=group_size, act_bits=act_bits, flag=flag)
         else:
             weight = linear.weight.detach()
-            qweight, scales = packed_clipped_weight(_even_columns(weight), group_size,
-                                                    _even_columns(channel_weight.get(key)))
+            if key in hessians:
+                codes, scales = gptq_weight(weight, hessians.pop(key), group_size)
+                qweight = reference.pack_int4(_even_columns(codes))
+            else:  # "mse", "awq", and a "gptq" layer the calibration never reached: the clipping search
+                qweight, scales = packed_clipped_weight(_even_columns(weight), group_size,
+                                                        _even_columns(channel_weight.get(key)))
             DyQLinear.convert_in_place(linear, group_size=group_size, act_bits=act_bits, flag=flag, quantize=False)
             linear.qweight.copy_(qweight)
             linear.scales.copy_(scales)
         linear.weight_method = method
+        floor = max((bits for pattern, bits in floors.items() if any(_matches(n, (pattern,)) for n in names[key])),
+                    default=None)
+        if floor is not None:
+            linear.set_min_act_bits(floor)
+            report.min_act_bits[first] = floor
         report.linear_bytes_after += linear.weight_bytes()
         report.converted.append(first)
         if others:

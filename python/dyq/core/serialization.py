@@ -31,7 +31,8 @@ WEIGHTS_NAME = "model.safetensors"
 FORMAT_VERSION = 1
 # The name each weight method (quantize_model's ``method``) is saved under; all write the symmetric INT4
 # format of docs/numerics.md section 1, so any of them loads the same way.
-WEIGHT_METHOD_NAMES = {"rtn": "rtn_int4_symmetric", "mse": "mse_clip_int4_symmetric", "awq": "awq_int4_symmetric"}
+WEIGHT_METHOD_NAMES = {"rtn": "rtn_int4_symmetric", "mse": "mse_clip_int4_symmetric", "awq": "awq_int4_symmetric",
+                      "gptq": "gptq_int4_symmetric"}
 WEIGHT_METHODS = tuple(WEIGHT_METHOD_NAMES.values())
 
 
@@ -51,6 +52,8 @@ def quantization_state(model: nn.Module) -> dict[str, Any]:
             layers[name] = {"in_features": module.in_features, "out_features": module.out_features,
                             "bias": module.bias is not None, "group_size": module.group_size,
                             "act_bits": module.act_bits}
+            if module.min_act_bits > 2:
+                layers[name]["min_act_bits"] = module.min_act_bits
             if module.flag is not None:
                 flags[id(module.flag)] = module.flag
     if not layers:
@@ -105,6 +108,7 @@ def read_quantization_state(directory: str | os.PathLike) -> dict[str, Any]:
     for name, layer in state["layers"].items():
         check_group_size(layer["group_size"])
         check_bits(layer["act_bits"], f"layers[{name!r}].act_bits")
+        check_bits(layer.get("min_act_bits", 2), f"layers[{name!r}].min_act_bits")
     if state["flag_bits"] is not None:
         check_bits(state["flag_bits"], "flag_bits")
     return state
@@ -143,6 +147,7 @@ def prepare_quantized_layers(model: nn.Module, state: dict[str, Any], flag: Prec
         DyQLinear.convert_in_place(module, group_size=layer["group_size"], act_bits=layer["act_bits"], flag=flag,
                                    quantize=False)
         module.weight_method = method
+        module.set_min_act_bits(layer.get("min_act_bits", 2))
 
 
 def load_quantized(model_or_config, directory: str | os.PathLike) -> nn.Module:

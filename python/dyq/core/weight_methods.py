@@ -23,6 +23,18 @@ output as they run round-to-nearest's; only the choice of scale, and through it 
   pick, not for the one with the largest absolute error. ``alpha = 0`` (no scaling) is a candidate, so on
   the calibration batch the search never does worse than round-to-nearest. Layers with no foldable
   producer (o_proj under grouped-query attention, any non-Llama layer) get the weighted clipping only.
+* ``"gptq"``: error-compensating rounding (GPTQ, Frantar et al. 2023). Per layer, the Hessian of the output
+  error ``H = 2 X^T X / n`` of the calibration tokens' inputs to that layer, damped by :data:`GPTQ_DAMPING`
+  of its mean diagonal; the columns are quantized in order, in blocks of :data:`GPTQ_BLOCK`, and each
+  column's rounding error, divided by the diagonal of the upper Cholesky factor U of ``H^-1``
+  (``H^-1 = U^T U``), is subtracted from the columns not yet quantized along U's row: the optimal update of
+  the remaining weights for the output error ``||X W^T - X Wq^T||^2``. A group's scale is fixed when the
+  column loop enters it, by the clipping search (weighted by ``diag H``) on the group's weights *as the
+  earlier columns' errors have updated them*. X is the layer's input in the **float** model (one forward
+  pass, every layer observed at once, activations unquantized): the Hessian does not depend on the width
+  the dispatcher later picks, so the one weight set serves every width, and no layer waits for the
+  quantization of the ones before it (the "sequential" variant of the paper's reference, which feeds each
+  block the outputs of the already quantized blocks, would have to choose one activation width for them).
 """
 from __future__ import annotations
 
@@ -36,14 +48,16 @@ from torch import nn
 from . import reference
 from .precision import check_bits
 
-METHODS = ("rtn", "mse", "awq")
-CALIBRATED_METHODS = ("awq",)
+METHODS = ("rtn", "mse", "awq", "gptq")
+CALIBRATED_METHODS = ("awq", "gptq")
 # Clipping ratios tried by the "mse" search, largest first so that a tie keeps the larger (absmax) scale.
 CLIP_RATIOS = tuple(round(1.0 - 0.02 * i, 2) for i in range(26))  # 1.00, 0.98, ..., 0.50
 ALPHAS = tuple(i / 10 for i in range(11))                            # 0.0, 0.1, ..., 1.0
 DEFAULT_CALIBRATION_BITS = (16, 8, 4, 2)
 # Rows of X kept per scale group for the alpha search (the statistics use every calibration token).
 SEARCH_TOKENS = 256
+GPTQ_DAMPING = 0.01  # added to H's diagonal, as a share of its mean diagonal (the paper's 1 %)
+GPTQ_BLOCK = 128     # columns per lazy-update block (a multiple of every group size)
 
 
 def check_method(method) -> str:
@@ -138,6 +152,93 @@ def search_awq_scales(x: torch.Tensor, mean_abs: torch.Tensor, weights: Sequence
         if value < best[0]:
             best = (value, scales, alpha)
     return best[1], best[2]
+
+
+def gptq_weight(weight: torch.Tensor, hessian: torch.Tensor, group_size: int, damping: float = GPTQ_DAMPING,
+                block: int = GPTQ_BLOCK) -> tuple[torch.Tensor, torch.Tensor]:
+    """The "gptq" rounding of one layer: (codes int8 [N, K], scales float32 [N, ceil(K/G)]), computed in float64.
+
+    ``hessian`` [K, K] is ``2 X^T X / n`` of the layer's inputs (any positive multiple gives the same result:
+    the damping is relative). A column that no token reaches (``H[k, k] = 0``) is set to zero and takes no
+    error. ``block`` is rounded up to a multiple of the group size so that a group never straddles blocks."""
+    if weight.dim() != 2:
+        raise ValueError(f"weight must be 2-D [out_features, in_features], got shape {tuple(weight.shape)}")
+    n, k = weight.shape
+    if hessian.shape != (k, k):
+        raise ValueError(f"hessian must have shape [in_features, in_features] = [{k}, {k}], got {tuple(hessian.shape)}")
+    if not torch.isfinite(weight).all():
+        raise ValueError("weight contains NaN or Inf")
+    if not torch.isfinite(hessian).all():
+        raise ValueError("hessian contains NaN or Inf")
+    if not damping > 0:
+        raise ValueError(f"damping must be > 0, got {damping!r}")
+    w = weight.detach().double().cpu().clone()
+    h = hessian.detach().double().cpu().clone()
+    h = (h + h.T) / 2
+    if (h.diagonal() < 0).any():
+        raise ValueError("hessian is not positive semi-definite (a negative diagonal entry); "
+                         "pass 2 X^T X / n of the layer's inputs")
+    dead = h.diagonal() == 0
+    h[dead, :] = 0
+    h[:, dead] = 0
+    h[dead, dead] = 1
+    w[:, dead] = 0
+    h.diagonal().add_(damping * h.diagonal().mean())
+    factor, info = torch.linalg.cholesky_ex(h)
+    if info != 0:
+        raise ValueError("hessian is not positive semi-definite (its damped Cholesky factorisation failed); "
+                         "pass 2 X^T X / n of the layer's inputs")
+    upper = torch.linalg.cholesky(torch.cholesky_inverse(factor), upper=True)  # H^-1 = U^T U
+    channel_weight = h.diagonal().float()
+    block = -(-block // group_size) * group_size
+    codes = torch.zeros(n, k, dtype=torch.float64)
+    scales = torch.ones(n, -(-k // group_size), dtype=torch.float32)
+    for start in range(0, k, block):
+        end = min(start + block, k)
+        w_block, u_block = w[:, start:end].clone(), upper[start:end, start:end]
+        errors = torch.zeros(n, end - start, dtype=torch.float64)
+        for i in range(end - start):
+            column = start + i
+            if column % group_size == 0:  # entering a group: its scale from the weights as updated so far
+                stop = min(i + group_size, end - start)
+                _, group_scale = clipped_weight(w_block[:, i:stop], group_size, channel_weight[column:start + stop])
+                scales[:, column // group_size] = group_scale[:, 0]
+            scale = scales[:, column // group_size].double()
+            q = torch.round(w_block[:, i] / scale).clamp(reference.WEIGHT_QMIN, reference.WEIGHT_QMAX)
+            codes[:, column] = q
+            error = (w_block[:, i] - scale * q) / u_block[i, i]
+            w_block[:, i:] -= error[:, None] * u_block[i, i:][None, :]
+            errors[:, i] = error
+        w[:, end:] -= errors @ upper[start:end, end:]
+    return codes.to(torch.int8), scales
+
+
+@torch.no_grad()
+def collect_hessians(model: nn.Module, calibration) -> dict[int, torch.Tensor]:
+    """``2 X^T X / n`` (float64 [K, K]) of every ``nn.Linear`` of ``model`` (keyed by ``id``) over the
+    calibration data, from the inputs of the model as it is (float, unquantized)."""
+    sums: dict[int, list] = {}
+    hooks = []
+
+    def observe(module):
+        def hook(_module, inputs):
+            x = inputs[0].detach().reshape(-1, inputs[0].shape[-1]).float().cpu()
+            entry = sums.setdefault(id(module), [0, 0.0])
+            entry[0] += x.shape[0]
+            entry[1] = entry[1] + (x.T @ x).double()
+        return hook
+
+    for module in model.modules():
+        if isinstance(module, nn.Linear):
+            hooks.append(module.register_forward_pre_hook(observe(module)))
+    try:
+        run_calibration(model, calibration)
+    finally:
+        for hook in hooks:
+            hook.remove()
+    if not sums:
+        raise ValueError("calibration ran no nn.Linear of the model: nothing to calibrate")
+    return {key: 2 * total / count for key, (count, total) in sums.items()}
 
 
 # ---- calibration: what the layers read ------------------------------------------------------------------

@@ -36,7 +36,7 @@ DEFAULT_CACHE = Path(".cache/closed_loop")
 WIDTHS = (2, 4, 8, 16)
 # The weight methods the closed loop runs besides round-to-nearest (rollout.WEIGHT_METHODS, named here so
 # that summarizing needs no torch).
-WEIGHT_METHODS = ("mse", "awq")
+WEIGHT_METHODS = ("mse", "awq", "gptq")
 # Paired comparisons reported for every task: (configuration, against).
 COMPARISONS = (("dyq", "fp32"), ("dyq", "w4a16"), ("dyq", "w4a2"), ("dyq", "random_schedule"),
                ("dyq", "random_runs"), ("dyq_inverted", "dyq"), ("dyq_calibrated", "fp32"), ("dyq_calibrated", "dyq"),

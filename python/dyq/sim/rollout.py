@@ -18,7 +18,9 @@ A **configuration** says how the policy runs (:data:`CONFIGS`):
 * the same static widths and DyQ on INT4 weights chosen by another method of ``dyq.quantize_model``
   (docs/quantization.md): ``mse_w4a16`` .. ``mse_w4a2`` and ``mse_dyq`` (per-group clipping search),
   ``awq_w4a16`` .. ``awq_w4a2`` and ``awq_dyq`` (activation-aware scales calibrated on the checkpoint's
-  training sample, for all widths together). Each method makes one weight set, which serves all its rows.
+  training sample, for all widths together), ``gptq_w4a16`` .. ``gptq_w4a2`` and ``gptq_dyq``
+  (error-compensating rounding from the same sample's float inputs). Each method makes one weight set,
+  which serves all its rows.
 
 DyQ in the loop, per control step t (paper Algorithm 1 and Sec. V-B):
 
@@ -60,7 +62,7 @@ from .policy import TokenPolicy
 GROUP_SIZE = 128
 SMOOTHQUANT_ALPHA = 0.5  # SmoothQuant's default migration strength
 # How a configuration's INT4 weights are chosen: a dyq.quantize_model method, or round-to-nearest after
-# SmoothQuant smoothing. "awq" and "smoothquant" calibrate on the checkpoint's training sample.
+# SmoothQuant smoothing. "awq", "gptq" and "smoothquant" calibrate on the checkpoint's training sample.
 WEIGHT_METHODS = tuple(m for m in dyq.core.weight_methods.METHODS if m != "rtn")
 WEIGHTS = ("rtn", "smoothquant") + WEIGHT_METHODS
 
@@ -208,7 +210,8 @@ class PolicyRunner:
         method = weights if weights in WEIGHT_METHODS else "rtn"
         if weights == "smoothquant":
             self._smooth(policy)
-        calibration = self._calibration_ids(policy, weights) if method == "awq" else None
+        calibration = (self._calibration_ids(policy, weights)
+                       if method in dyq.core.weight_methods.CALIBRATED_METHODS else None)
         report = dyq.quantize_model(policy.model, group_size=GROUP_SIZE, flag=self.flag, method=method,
                                     calibration=calibration)
         if any(name != "lm_head" for name in report.skipped):
