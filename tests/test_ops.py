@@ -202,6 +202,8 @@ def test_gemm_with_no_input_features_is_the_bias(act_bits, rng):
     bias = torch.randn(6, generator=rng)
     assert torch.equal(dyq.ops.gemm(torch.randn(3, 0), qweight, scales, 32, act_bits, bias), bias.expand(3, 6))
     assert torch.equal(dyq.ops.gemm(torch.randn(3, 0), qweight, scales, 32, act_bits), torch.zeros(3, 6))
+    for x in (torch.randn(3, 0), torch.empty(0, 0)):  # the reference check takes them too (no rows to reshape)
+        assert_gemm_close(dyq.ops.gemm(x, qweight, scales, 32, act_bits, bias), x, qweight, scales, 32, act_bits, bias)
 
 
 # K that the group size does not divide: the last group of each row holds the remainder.
