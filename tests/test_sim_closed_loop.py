@@ -306,3 +306,25 @@ def test_every_weight_method_is_compared_against_round_to_nearest():
 
     assert evaluate.WEIGHT_METHODS == rollout.WEIGHT_METHODS
     assert {(f"{m}_w4a2", "w4a2") for m in rollout.WEIGHT_METHODS} <= set(evaluate.COMPARISONS)
+
+
+def test_summarize_only_names_the_figure_after_its_table_and_skips_a_task_without_episodes(tmp_path):
+    import subprocess
+    import sys
+
+    cache, docs = tmp_path / "cache", tmp_path / "docs"
+    docs.mkdir()
+    command = [sys.executable, "-m", "dyq", "eval", "--tasks", "lift", "--configs", "fp32", "--episodes", "1",
+               "--summarize-only", "--no-progress", "--cache", str(cache), "--out", str(tmp_path / "r.json"),
+               "--table", str(docs / "closed_loop_perturbed.md")]
+    first = subprocess.run(command, cwd=tmp_path, capture_output=True, text=True)
+    assert first.returncode == 0, first.stderr[-2000:]  # nothing cached yet: a table, no figure
+    assert not list(docs.glob("figures/*.png"))
+    digest = evaluate.checkpoint_digest(evaluate.default_checkpoint("lift"))
+    evaluate._write_episode(evaluate.cache_path(cache, "lift", "fp32", 0, digest),
+                            {"seed": 0, "success": True, "steps": 1, "bits": [16], "latency_ms": [1.0],
+                             "prefill_kernel_bits": [{}], "decode_kernel_bits": [{}]})
+    second = subprocess.run(command, cwd=tmp_path, capture_output=True, text=True)
+    assert second.returncode == 0, second.stderr[-2000:]
+    # Rows written to another table must not overwrite the official table's figure, closed_loop_lift.png.
+    assert [p.name for p in docs.glob("figures/*.png")] == ["closed_loop_perturbed_lift.png"]

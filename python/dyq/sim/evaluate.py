@@ -480,8 +480,11 @@ def main(args: argparse.Namespace) -> int:
     try:
         from .plots import plot_success_vs_bits
 
-        for task in tasks:
-            print(f"wrote {plot_success_vs_bits(data['tasks'][task], task, args.table.parent / 'figures' / f'closed_loop_{task}.png')}")
+        for task in (t for t in tasks if data["tasks"][t]["configs"]):  # a task with no episodes yet: no figure
+            # Named after the table (closed_loop_<task>.png beside docs/closed_loop.md), so that rows written
+            # to another table (the perturbed states') do not overwrite the figure of the official ones.
+            figure = args.table.parent / "figures" / f"{args.table.stem}_{task}.png"
+            print(f"wrote {plot_success_vs_bits(data['tasks'][task], task, figure)}")
     except RuntimeError as err:  # no matplotlib: the table is still complete
         print(f"no figure: {err}")
     print(markdown_table(data))
