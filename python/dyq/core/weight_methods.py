@@ -218,26 +218,14 @@ def collect_hessians(model: nn.Module, calibration) -> dict[int, torch.Tensor]:
     """``2 X^T X / n`` (float64 [K, K]) of every ``nn.Linear`` of ``model`` (keyed by ``id``) over the
     calibration data, from the inputs of the model as it is (float, unquantized)."""
     sums: dict[int, list] = {}
-    hooks = []
 
-    def observe(module):
-        def hook(_module, inputs):
-            x = inputs[0].detach().reshape(-1, inputs[0].shape[-1]).float().cpu()
-            entry = sums.setdefault(id(module), [0, 0.0])
-            entry[0] += x.shape[0]
-            entry[1] = entry[1] + (x.T @ x).double()
-        return hook
+    def add(key: int, inputs: torch.Tensor) -> None:
+        x = inputs.detach().reshape(-1, inputs.shape[-1]).float().cpu()
+        entry = sums.setdefault(key, [0, 0.0])
+        entry[0] += x.shape[0]
+        entry[1] = entry[1] + (x.T @ x).double()
 
-    for module in model.modules():
-        if isinstance(module, nn.Linear):
-            hooks.append(module.register_forward_pre_hook(observe(module)))
-    try:
-        run_calibration(model, calibration)
-    finally:
-        for hook in hooks:
-            hook.remove()
-    if not sums:
-        raise ValueError("calibration ran no nn.Linear of the model: nothing to calibrate")
+    _observe_linear_inputs(model, calibration, add)
     return {key: 2 * total / count for key, (count, total) in sums.items()}
 
 
@@ -309,24 +297,33 @@ def collect_input_statistics(model: nn.Module, calibration, keep_rows_of: set[in
     """InputStatistics of every ``nn.Linear`` of ``model`` (keyed by ``id``) over the calibration data; the
     rows themselves are kept for the layers in ``keep_rows_of``."""
     statistics: dict[int, InputStatistics] = {}
+    _observe_linear_inputs(model, calibration,
+                           lambda key, x: statistics.setdefault(key, InputStatistics()).add(x, key in keep_rows_of))
+    return statistics
+
+
+def _observe_linear_inputs(model: nn.Module, calibration, observe) -> None:
+    """Run the calibration data through ``model`` with ``observe(id(layer), input)`` called on the input
+    of every ``nn.Linear``; an error if no such layer ran."""
+    seen = set()
     hooks = []
 
-    def observe(module):
+    def hook_of(key: int):
         def hook(_module, inputs):
-            statistics.setdefault(id(module), InputStatistics()).add(inputs[0], id(module) in keep_rows_of)
+            seen.add(key)
+            observe(key, inputs[0])
         return hook
 
     for module in model.modules():
         if isinstance(module, nn.Linear):
-            hooks.append(module.register_forward_pre_hook(observe(module)))
+            hooks.append(module.register_forward_pre_hook(hook_of(id(module))))
     try:
         run_calibration(model, calibration)
     finally:
         for hook in hooks:
             hook.remove()
-    if not statistics:
+    if not seen:
         raise ValueError("calibration ran no nn.Linear of the model: nothing to calibrate")
-    return statistics
 
 
 def check_calibration_bits(calibration_bits) -> tuple[int, ...]:
