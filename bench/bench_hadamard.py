@@ -4,9 +4,10 @@ dense ``x @ R``, on the same float32 inputs, at one thread.
 
     python bench/bench_hadamard.py [--sizes 1536 2816 11008] [--rows 1 16 256] [--out hadamard_cpu.json]
 
-Each size uses dyq's construction, n = m x p (OnlineRotation): 1536 = 12 x 128, 2816 = 44 x 64, and
-11008 = 5504 x 2, where the Paley factor is nearly the whole matrix and the butterfly has one stage. Every
-path computes the same R (each is compared with the float64 product on 4 rows; max_abs_error). Medians of wall time; the table and the
+Each size uses dyq's construction, n = m x p (OnlineRotation): 1536 = 12 x 128, 2816 = 44 x 64 and
+11008 = 344 x 32 (Paley over GF(7^3)). A size whose split differs under the prime-field-only construction 1
+is also timed with it (11008 = 5504 x 2, where the Paley factor is nearly the whole matrix and the
+butterfly has one stage), as its own rows. Every path computes the same R (each is compared with the float64 product on 4 rows; max_abs_error). Medians of wall time; the table and the
 JSON say whether other jobs were running (``--loaded``): timings on a loaded machine are indicative only.
 """
 from __future__ import annotations
@@ -18,7 +19,13 @@ import torch
 
 import dyq
 from dyq.results import environment, median_ms, print_table, write_json
-from dyq.rotation import OnlineRotation
+from dyq.rotation import HADAMARD_CONSTRUCTION, OnlineRotation, hadamard_factors
+
+
+def constructions(n: int) -> list[int]:
+    """The current construction, and construction 1 too when it splits n otherwise."""
+    shapes = {c: None if (f := hadamard_factors(n, c)) is None else f[0].shape for c in (1, HADAMARD_CONSTRUCTION)}
+    return [HADAMARD_CONSTRUCTION] if shapes[1] == shapes[HADAMARD_CONSTRUCTION] else [HADAMARD_CONSTRUCTION, 1]
 
 
 def paths(rotation: OnlineRotation) -> dict:
@@ -58,8 +65,8 @@ def main(argv: list[str] | None = None) -> int:
     torch.set_num_threads(args.threads)
     gen = torch.Generator().manual_seed(0)
     results = []
-    for n in args.sizes:
-        rotation = OnlineRotation(n)
+    for n, construction in ((n, c) for n in args.sizes for c in constructions(n)):
+        rotation = OnlineRotation(n, construction=construction)
         ways = paths(rotation)
         m, p = rotation.left.shape[0], rotation.right.shape[0]
         probe = torch.randn(4, n, generator=gen)  # the three paths agree with the float64 R
@@ -68,11 +75,13 @@ def main(argv: list[str] | None = None) -> int:
         for rows in args.rows:
             x = torch.randn(rows, n, generator=gen)
             times = {name: timed(fn, x, args.budget) for name, fn in ways.items()}
-            results.append({"n": n, "m": m, "p": p, "rows": rows, "median_ms": times, "max_abs_error": errors})
-            print(f"n = {n}, rows = {rows}: " + ", ".join(f"{k} {v:.4g} ms" for k, v in times.items()), flush=True)
+            results.append({"n": n, "construction": construction, "m": m, "p": p, "rows": rows,
+                            "median_ms": times, "max_abs_error": errors})
+            print(f"n = {n} = {m} x {p}, rows = {rows}: " + ", ".join(f"{k} {v:.4g} ms" for k, v in times.items()),
+                  flush=True)
 
-    headers = ["n", "m x p", "rows", *(f"{name} ms" for name in ways), "op / two matmuls", "op / dense"]
-    table = [[r["n"], f"{r['m']} x {r['p']}", r["rows"], *(f"{t:.4g}" for t in r["median_ms"].values()),
+    headers = ["n", "construction", "m x p", "rows", *(f"{name} ms" for name in ways), "op / two matmuls", "op / dense"]
+    table = [[r["n"], r["construction"], f"{r['m']} x {r['p']}", r["rows"], *(f"{t:.4g}" for t in r["median_ms"].values()),
               f"{r['median_ms']['dyq op'] / r['median_ms']['torch two matmuls']:.3g}",
               f"{r['median_ms']['dyq op'] / r['median_ms']['dense x @ R']:.3g}"] for r in results]
     env = environment()

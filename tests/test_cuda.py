@@ -314,7 +314,7 @@ def test_activations_near_the_fp32_range_are_finite_on_cuda(act_bits, rng):
 @pytest.mark.parametrize("dtype", DTYPES)
 @pytest.mark.parametrize("n", [1, 8, 96, 1536, 2816, 11008, 16384])
 def test_hadamard_transform_matches_the_cpu_op(n, dtype, rng):
-    """One block per row, the butterfly in shared memory (11008 = 5504 x 2 and 16384 need more than 48 KiB).
+    """One block per row, the butterfly in shared memory (11008 = 344 x 32 and 16384 need more than 48 KiB).
     The CPU op is tested against the dense float64 rotation (test_hadamard_transform.py)."""
     rotation = OnlineRotation(n, seed=3)
     signs, left = rotation.signs.float(), rotation.left.float()

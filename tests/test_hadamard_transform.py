@@ -35,6 +35,17 @@ def test_fp32_equals_the_dense_rotation(n, lead, rng):
     torch.testing.assert_close(got.double(), expected, rtol=0, atol=2e-5)
 
 
+def test_llama_7b_intermediate_size(rng):
+    """11008 = 344 x 32, 344 Paley's order over GF(7^3); against the float64 factored product (the dense
+    matrix would be 11008^2 doubles)."""
+    rotation = OnlineRotation(11008, seed=1)
+    assert rotation.hadamard and rotation.left.shape == (344, 344)
+    x = torch.randn(3, 11008, generator=rng)
+    expected = rotation(x.double())  # float64: (x * signs) viewed as [344, 32], A^T X B in torch
+    got = dyq.ops.hadamard_transform(x, *kernel_arguments(rotation))
+    torch.testing.assert_close(got.double(), expected, rtol=0, atol=2e-5)
+
+
 @pytest.mark.parametrize("dtype", (torch.bfloat16, torch.float16))
 def test_half_precision_rounds_the_fp32_result_once(dtype, rng):
     rotation = OnlineRotation(1536, seed=2)

@@ -1,12 +1,13 @@
 """Hadamard rotation (dyq.rotation): orthogonal, exact in float on a Llama model, spreads outliers, and
 survives save and load."""
 import copy
+import json
 
 import pytest
 import torch
 
 import dyq
-from dyq.rotation import OnlineRotation, hadamard_matrix, rotate_llama
+from dyq.rotation import HADAMARD_CONSTRUCTION, OnlineRotation, _jacobsthal, hadamard_factors, hadamard_matrix, rotate_llama
 
 transformers = pytest.importorskip("transformers")
 
@@ -27,12 +28,38 @@ def outlier_llama(seed=0, tied=True):
     return model
 
 
-@pytest.mark.parametrize("n", [1, 2, 12, 20, 28, 36, 48, 64, 576, 960, 1536])
+@pytest.mark.parametrize("n", [1, 2, 12, 20, 28, 36, 48, 52, 64, 576, 688, 960, 1536])
 def test_hadamard_matrices_are_hadamard(n):
     h = hadamard_matrix(n)
     assert h is not None and h.shape == (n, n)
     assert torch.equal(h.abs(), torch.ones(n, n))
     assert torch.equal(h @ h.T, n * torch.eye(n, dtype=torch.float64))
+
+
+@pytest.mark.parametrize("q", [3, 5, 9, 25, 27, 49, 81, 125, 343])
+def test_jacobsthal_matrices_over_prime_power_fields(q):
+    """The defining properties of the Jacobsthal matrix of GF(q), which make Paley's constructions Hadamard:
+    Q Q^T = q I - J, zero row sums, a zero diagonal, symmetric for q = 1 mod 4 and antisymmetric for 3 mod 4."""
+    jacobsthal = _jacobsthal(q)
+    ones = torch.ones(q, q, dtype=torch.float64)
+    assert torch.equal(jacobsthal @ jacobsthal.T, q * torch.eye(q, dtype=torch.float64) - ones)
+    assert torch.equal(jacobsthal.sum(1), torch.zeros(q, dtype=torch.float64))
+    assert torch.equal(jacobsthal.diagonal(), torch.zeros(q, dtype=torch.float64))
+    assert torch.equal(jacobsthal.T, jacobsthal if q % 4 == 1 else -jacobsthal)
+
+
+def test_prime_power_fields_shrink_the_dense_factor():
+    """Llama-2-7B's intermediate 11008 = 32 * (7^3 + 1): a dense factor of order 344, where prime fields alone
+    (construction 1) leave 2 * 5504. 52 (= 2 (5^2 + 1)) and 688 (= 2 * 344) have no prime-field split."""
+    left, right = hadamard_factors(11008)
+    assert (left.shape[0], right.shape[0]) == (344, 32)
+    assert torch.equal(left @ left.T, 344 * torch.eye(344, dtype=torch.float64))
+    assert hadamard_factors(52, construction=1) is None and hadamard_factors(688, construction=1) is None
+    # Orders a prime field already covers keep that field's matrix.
+    for n in (12, 28, 96, 576, 960, 1536):
+        assert torch.equal(hadamard_matrix(n, construction=1), hadamard_matrix(n, construction=2))
+    with pytest.raises(ValueError, match="construction must be one of"):
+        hadamard_factors(12, construction=3)
 
 
 @pytest.mark.parametrize("n", [12, 96, 576, 7, 22])
@@ -54,7 +81,7 @@ def test_rotated_float_model_computes_the_same_function(tied):
     with torch.no_grad():
         expected = model(ids).logits
         rotated = copy.deepcopy(model)
-        assert rotate_llama(rotated, seed=5) == {"kind": "hadamard", "seed": 5}
+        assert rotate_llama(rotated, seed=5) == {"kind": "hadamard", "seed": 5, "construction": HADAMARD_CONSTRUCTION}
         got = rotated(ids).logits
     # fp32 rounding of sums of about a hundred terms, relative to the logits' scale.
     torch.testing.assert_close(got, expected, rtol=0, atol=2e-5 * expected.abs().max().item())
@@ -107,10 +134,41 @@ def test_a_rotated_quantized_model_saves_and_loads(tmp_path):
     dyq.save_quantized(model, tmp_path)
     fresh = transformers.LlamaForCausalLM(outlier_llama().config)
     loaded = dyq.load_quantized(fresh, tmp_path)
-    assert loaded.dyq_rotation == {"kind": "hadamard", "seed": 1}
+    assert loaded.dyq_rotation == {"kind": "hadamard", "seed": 1, "construction": HADAMARD_CONSTRUCTION}
     ids = torch.randint(0, 200, (1, 11))
     with torch.no_grad():
         torch.testing.assert_close(loaded(ids).logits, model(ids).logits)
+
+
+def test_a_file_without_a_construction_is_rebuilt_with_the_first(tmp_path):
+    """A model saved before the construction was recorded ran construction 1. Its intermediate size 104 is
+    104 x 1 (Paley I over GF(103)) under construction 1 and 52 x 2 under 2: loading it with the current
+    construction would rotate down_proj's input by a matrix its weights were not folded with."""
+    config = transformers.LlamaConfig(vocab_size=200, hidden_size=48, intermediate_size=104, num_hidden_layers=2,
+                                      num_attention_heads=4, num_key_value_heads=2, max_position_embeddings=64)
+    torch.manual_seed(3)
+    model = transformers.LlamaForCausalLM(config).eval()
+    rotate_llama(model, seed=2, construction=1)
+    dyq.quantize_model(model, group_size=32, flag=dyq.PrecisionFlag(16))
+    dyq.save_quantized(model, tmp_path)
+    state_file = tmp_path / "dyq_config.json"
+    state = json.loads(state_file.read_text())
+    del state["rotation"]["construction"]
+    state_file.write_text(json.dumps(state))
+    ids = torch.randint(0, 200, (1, 9))
+    with torch.no_grad():
+        expected = model(ids).logits
+        loaded = dyq.load_quantized(transformers.LlamaForCausalLM(config), tmp_path)
+        assert loaded.model.layers[0].mlp.down_proj_rotation.left.shape == (104, 104)
+        torch.testing.assert_close(loaded(ids).logits, expected)
+        state["rotation"]["construction"] = 2  # the other matrix: a different function
+        state_file.write_text(json.dumps(state))
+        wrong = dyq.load_quantized(transformers.LlamaForCausalLM(config), tmp_path)
+        assert (wrong(ids).logits - expected).abs().max() > 1e-3
+        state["rotation"]["construction"] = 7
+        state_file.write_text(json.dumps(state))
+        with pytest.raises(ValueError, match="uses rotation"):
+            dyq.load_quantized(transformers.LlamaForCausalLM(config), tmp_path)
 
 
 def test_bad_arguments_are_refused_by_name():

@@ -24,8 +24,11 @@ Hugging Face Llama model, in place, before :func:`dyq.quantize_model`:
 
 **Sizes that are not powers of two.** :func:`hadamard_matrix` builds a Hadamard matrix of order
 ``n = 2^k * m`` as the Kronecker product of Sylvester's ``H_{2^k}`` with a Paley matrix of order m: Paley I
-for ``m = q + 1``, q a prime = 3 mod 4 (12, 20, 24, 44, 60, ...), Paley II for ``m = 2 (q + 1)``, q a prime =
-1 mod 4 (12, 28, 36, 60, ...). SmolLM's 576 = 16 * 36, 960 = 16 * 60 and 1536 = 128 * 12 are all covered.
+for ``m = q + 1``, q a prime power = 3 mod 4 (12, 20, 24, 28, 44, 60, ...), Paley II for ``m = 2 (q + 1)``, q a
+prime power = 1 mod 4 (12, 20, 28, 36, 52, 60, ...), over the finite field GF(q) (prime fields tried first).
+SmolLM's 576 = 16 * 36, 960 = 16 * 60 and 1536 = 128 * 12 are covered, and Llama-2-7B's (and OpenVLA's)
+intermediate 11008 = 32 * 344, 344 = 7^3 + 1: the dense factor has order 344, where prime fields alone
+leave 11008 = 2 * 5504 and a dense factor that costs more than down_proj itself.
 When no such split exists, the documented fallback is a random orthogonal matrix (the Q of a seeded
 Gaussian's QR decomposition): as orthogonal and as exact, with outliers spread only in expectation.
 
@@ -50,32 +53,104 @@ def _is_prime(q: int) -> bool:
     return q >= 2 and all(q % f for f in range(2, math.isqrt(q) + 1))
 
 
+def _prime_power(q: int) -> tuple[int, int] | None:
+    """(r, k) with q = r^k, r prime and k >= 1, or None."""
+    for r in range(2, math.isqrt(q) + 1):
+        if q % r == 0:
+            k = 0
+            while q % r == 0:
+                q, k = q // r, k + 1
+            return (r, k) if q == 1 else None
+    return (q, 1) if q >= 2 else None
+
+
+def _poly_mulmod(a: list[int], b: list[int], modulus: list[int], r: int) -> list[int]:
+    """a * b mod (modulus, r): polynomials over GF(r) as coefficient lists, lowest degree first; modulus monic
+    of degree k, a and b of degree < k."""
+    k = len(modulus) - 1
+    product = [0] * (2 * k - 1)
+    for i, ai in enumerate(a):
+        for j, bj in enumerate(b):
+            product[i + j] = (product[i + j] + ai * bj) % r
+    for d in range(len(product) - 1, k - 1, -1):  # reduce: x^k = -(modulus[0] + ... + modulus[k-1] x^(k-1))
+        c = product[d]
+        if c:
+            for i in range(k + 1):
+                product[d - k + i] = (product[d - k + i] - c * modulus[i]) % r
+    return product[:k]
+
+
+def _irreducible(r: int, k: int) -> list[int]:
+    """The first monic polynomial of degree k over GF(r) (coefficients in counting order) with no factor of
+    degree 1 .. k/2, i.e. irreducible; GF(r^k) is GF(r)[x] modulo it."""
+    def poly(index: int, degree: int) -> list[int]:
+        return [(index // r ** i) % r for i in range(degree)] + [1]
+
+    def divides(f: list[int], g: list[int]) -> bool:  # f monic
+        g = list(g)
+        for d in range(len(g) - 1, len(f) - 2, -1):
+            c = g[d]
+            if c:
+                for i in range(len(f)):
+                    g[d - len(f) + 1 + i] = (g[d - len(f) + 1 + i] - c * f[i]) % r
+        return not any(g[:len(f) - 1])
+
+    for index in range(r ** k):
+        g = poly(index, k)
+        if not any(divides(poly(i, d), g) for d in range(1, k // 2 + 1) for i in range(r ** d)):
+            return g
+    raise AssertionError(f"no irreducible polynomial of degree {k} over GF({r})")  # one always exists
+
+
 def _jacobsthal(q: int) -> torch.Tensor:
-    """Q[i, j] = chi(j - i), chi the quadratic character mod the prime q."""
-    squares = {(i * i) % q for i in range(1, q)}
+    """Q[i, j] = chi(x_j - x_i) over the field GF(q), q = r^k a prime power, chi its quadratic character and
+    x_i the element whose polynomial coefficients are the base-r digits of i (for a prime q, the integers
+    mod q)."""
+    r, k = _prime_power(q)
+    digits = torch.tensor([[(i // r ** d) % r for d in range(k)] for i in range(q)], dtype=torch.int64)
+    if k == 1:
+        squares = {(i * i) % q for i in range(1, q)}
+    else:
+        modulus = _irreducible(r, k)
+        weights = [r ** d for d in range(k)]
+        squares = {sum(c * w for c, w in zip(_poly_mulmod(a, a, modulus, r), weights))
+                   for a in digits[1:].tolist()}
     chi = torch.tensor([0] + [1 if a in squares else -1 for a in range(1, q)], dtype=torch.float64)
-    index = (torch.arange(q)[None, :] - torch.arange(q)[:, None]) % q
+    difference = (digits[None, :, :] - digits[:, None, :]) % r  # x_j - x_i, digit by digit
+    index = (difference * torch.tensor([r ** d for d in range(k)])).sum(-1)
     return chi[index]
 
 
-def _paley(m: int) -> torch.Tensor | None:
-    """A Hadamard matrix of order m by Paley's first or second construction, or None."""
-    q = m - 1
-    if m % 4 == 0 and _is_prime(q) and q % 4 == 3:
-        s = torch.zeros(m, m, dtype=torch.float64)
-        s[0, 1:] = 1
-        s[1:, 0] = -1
-        s[1:, 1:] = _jacobsthal(q)
-        return s + torch.eye(m, dtype=torch.float64)
-    q = m // 2 - 1
-    if m % 4 == 0 and _is_prime(q) and q % 4 == 1:
-        c = torch.zeros(q + 1, q + 1, dtype=torch.float64)
-        c[0, 1:] = 1
-        c[1:, 0] = 1
-        c[1:, 1:] = _jacobsthal(q)
-        one = torch.tensor([[1.0, 1.0], [1.0, -1.0]], dtype=torch.float64)
-        other = torch.tensor([[1.0, -1.0], [-1.0, -1.0]], dtype=torch.float64)
-        return torch.kron(c, one) + torch.kron(torch.eye(q + 1, dtype=torch.float64), other)
+# The constructions of hadamard_factors: 1 takes Paley's matrices over prime fields only; 2 (the current)
+# also over prime-power fields (11008 = 32 * (7^3 + 1) instead of 2 * 5504). A saved rotated model records
+# its construction, so that its run-time rotation is rebuilt as the one its weights were folded with.
+HADAMARD_CONSTRUCTION = 2
+HADAMARD_CONSTRUCTIONS = (1, 2)
+
+
+def _paley(m: int, prime_powers: bool = True) -> torch.Tensor | None:
+    """A Hadamard matrix of order m by Paley's first or second construction, or None. Prime fields are
+    tried before prime-power ones, so an order that has both keeps the prime field's matrix."""
+    if m % 4 != 0:
+        return None
+    fields = [_is_prime] + ([lambda q: _prime_power(q) is not None] if prime_powers else [])
+    for is_field in fields:
+        q = m - 1
+        if is_field(q) and q % 4 == 3:
+            s = torch.zeros(m, m, dtype=torch.float64)
+            s[0, 1:] = 1
+            s[1:, 0] = -1
+            s[1:, 1:] = _jacobsthal(q)
+            return s + torch.eye(m, dtype=torch.float64)
+        q = m // 2 - 1
+        if is_field(q) and q % 4 == 1:
+            c = torch.zeros(q + 1, q + 1, dtype=torch.float64)
+            c[0, 1:] = 1
+            c[1:, 0] = 1
+            c[1:, 1:] = _jacobsthal(q)
+            one = torch.tensor([[1.0, 1.0], [1.0, -1.0]], dtype=torch.float64)
+            other = torch.tensor([[1.0, -1.0], [-1.0, -1.0]], dtype=torch.float64)
+            return torch.kron(c, one) + torch.kron(torch.eye(q + 1, dtype=torch.float64), other)
     return None
 
 
@@ -86,24 +161,32 @@ def _sylvester(p: int) -> torch.Tensor:
     return h
 
 
-def hadamard_factors(n: int) -> tuple[torch.Tensor, torch.Tensor] | None:
+def _check_construction(construction: int) -> None:
+    if construction not in HADAMARD_CONSTRUCTIONS:
+        raise ValueError(f"construction must be one of {HADAMARD_CONSTRUCTIONS}, got {construction!r}")
+
+
+def hadamard_factors(n: int, construction: int = HADAMARD_CONSTRUCTION) -> tuple[torch.Tensor, torch.Tensor] | None:
     """(A [m, m], B [p, p]), +-1 Hadamard matrices with ``n = m * p`` (B Sylvester's, the largest power of
-    two that leaves a Paley order m), or None if this construction has no matrix of order n."""
+    two that leaves a Paley order m), or None if this construction has no matrix of order n.
+    ``construction`` (:data:`HADAMARD_CONSTRUCTIONS`) selects the Paley fields: 1 prime fields only, 2 also
+    prime powers."""
     if not isinstance(n, int) or isinstance(n, bool) or n < 1:
         raise ValueError(f"n must be an int >= 1, got {n!r}")
+    _check_construction(construction)
     p = 1 << ((n & -n).bit_length() - 1)  # the largest power of two dividing n
     while p >= 1:
         m = n // p
-        a = torch.ones(1, 1, dtype=torch.float64) if m == 1 else _paley(m)
+        a = torch.ones(1, 1, dtype=torch.float64) if m == 1 else _paley(m, prime_powers=construction >= 2)
         if a is not None:
             return a, _sylvester(p)
         p //= 2
     return None
 
 
-def hadamard_matrix(n: int) -> torch.Tensor | None:
+def hadamard_matrix(n: int, construction: int = HADAMARD_CONSTRUCTION) -> torch.Tensor | None:
     """A +-1 matrix H of order n with ``H H^T = n I`` (float64), or None (see :func:`hadamard_factors`)."""
-    factors = hadamard_factors(n)
+    factors = hadamard_factors(n, construction)
     return None if factors is None else torch.kron(*factors)
 
 
@@ -116,13 +199,13 @@ class OnlineRotation(nn.Module):
 
     The fallback for sizes without a Hadamard construction is ``A`` a random orthogonal matrix, ``p = 1``.
     The buffers are float64 (cast to the input's dtype when applied) and not persistent: they are rebuilt from
-    the size and seed that ``dyq_config.json`` records.
+    the size, seed and construction that ``dyq_config.json`` records.
     """
 
-    def __init__(self, size: int, seed: int = 0) -> None:
+    def __init__(self, size: int, seed: int = 0, construction: int = HADAMARD_CONSTRUCTION) -> None:
         super().__init__()
         gen = torch.Generator().manual_seed(seed)
-        factors = hadamard_factors(size)
+        factors = hadamard_factors(size, construction)
         if factors is None:
             left, _ = torch.linalg.qr(torch.randn(size, size, generator=gen, dtype=torch.float64))
             right = torch.ones(1, 1, dtype=torch.float64)
@@ -190,11 +273,11 @@ def _rotate_output(linear: nn.Linear, rotation: torch.Tensor) -> None:
         linear.bias.copy_(linear.bias.double() @ rotation)
 
 
-def attach_online_rotations(model: nn.Module, seed: int) -> OnlineRotation:
+def attach_online_rotations(model: nn.Module, seed: int, construction: int = HADAMARD_CONSTRUCTION) -> OnlineRotation:
     """Give every decoder layer's down_proj the run-time rotation of its input (as a forward pre-hook; the
     module is held as ``mlp.down_proj_rotation``). Used by :func:`rotate_llama` and when loading."""
     _, layers = _decoder_layers_any(model)
-    rotation = OnlineRotation(layers[0].mlp.down_proj.in_features, seed + 2)
+    rotation = OnlineRotation(layers[0].mlp.down_proj.in_features, seed + 2, construction)
     for layer in layers:
         layer.mlp.down_proj_rotation = rotation
         layer.mlp.down_proj.register_forward_pre_hook(lambda _module, inputs, r=rotation: (r(inputs[0]),))
@@ -223,17 +306,19 @@ def untie_lm_head(model: nn.Module) -> None:
 
 
 @torch.no_grad()
-def rotate_llama(model: nn.Module, seed: int = 0) -> dict:
+def rotate_llama(model: nn.Module, seed: int = 0, construction: int = HADAMARD_CONSTRUCTION) -> dict:
     """Rotate a float Llama model in place (module docstring); returns the description that
-    ``dyq.save_quantized`` records (``{"kind": "hadamard", "seed": seed}``)."""
+    ``dyq.save_quantized`` records (``{"kind": "hadamard", "seed": seed, "construction": 2}``, the
+    construction of :func:`hadamard_factors`; an older one is kept for reproducing an old model)."""
     if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
         raise ValueError(f"seed must be an int >= 0, got {seed!r}")
+    _check_construction(construction)
     if getattr(model, "dyq_rotation", None) is not None:
         raise ValueError("the model is already rotated (model.dyq_rotation is set)")
     inner, layers = _decoder_layers(model)
     untie_lm_head(model)
     hidden = inner.embed_tokens.weight.shape[1]
-    residual = OnlineRotation(hidden, seed).matrix()
+    residual = OnlineRotation(hidden, seed, construction).matrix()
     for layer in layers:
         attn, mlp = layer.self_attn, layer.mlp
         _fold_norm(layer.input_layernorm, [attn.q_proj, attn.k_proj, attn.v_proj])
@@ -243,7 +328,7 @@ def rotate_llama(model: nn.Module, seed: int = 0) -> dict:
     inner.embed_tokens.weight.copy_(inner.embed_tokens.weight.double() @ residual)
     _rotate_input(model.lm_head, residual)
     head_dim = layers[0].self_attn.head_dim
-    head = OnlineRotation(head_dim, seed + 1).matrix()
+    head = OnlineRotation(head_dim, seed + 1, construction).matrix()
     for layer in layers:
         attn, mlp = layer.self_attn, layer.mlp
         for reader in (attn.q_proj, attn.k_proj, attn.v_proj, mlp.gate_proj, mlp.up_proj):
@@ -257,9 +342,9 @@ def rotate_llama(model: nn.Module, seed: int = 0) -> dict:
             attn.v_proj.bias.copy_((attn.v_proj.bias.double().reshape(-1, head_dim) @ head).reshape(-1))
         o = attn.o_proj.weight.double().reshape(hidden, -1, head_dim)
         attn.o_proj.weight.copy_((o @ head).reshape(hidden, -1))
-    online = attach_online_rotations(model, seed)
+    online = attach_online_rotations(model, seed, construction)
     intermediate = online.matrix()
     for layer in layers:
         _rotate_input(layer.mlp.down_proj, intermediate)
-    model.dyq_rotation = {"kind": "hadamard", "seed": seed}
+    model.dyq_rotation = {"kind": "hadamard", "seed": seed, "construction": construction}
     return model.dyq_rotation

@@ -82,6 +82,11 @@ INSTANTIATE_TEST_SUITE_P(LeftOrdersAndPowersOfTwo, HadamardShapes,
                          ::testing::Combine(::testing::Values(1, 12, 36, 60),
                                             ::testing::Values(1, 2, 4, 8, 16, 32, 64, 128, 256, 512, 1024)));
 
+// The left product's blocks: 16 outputs by 4 columns, with outputs (17, 344 = 21 x 16 + 8) and columns
+// (p = 1, 2; 6 = 4 + 2) left over; 344 x 32 is Llama-7B's 11008.
+INSTANTIATE_TEST_SUITE_P(LeftProductBlocks, HadamardShapes,
+                         ::testing::Combine(::testing::Values(17, 344), ::testing::Values(1, 2, 4, 32)));
+
 TEST(Hadamard, HalfPrecisionRoundsTheFp32ResultOnce) {
   const uint32_t seed = fresh_seed();
   SCOPED_TRACE("seed " + std::to_string(seed));

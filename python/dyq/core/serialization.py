@@ -5,8 +5,9 @@ A directory written by :func:`save_quantized` holds
 * ``model.safetensors``: the model's state dict (INT4 ``qweight``, fp32 ``scales``, biases and every other
   parameter), written by ``safetensors.torch.save_model`` so that tied tensors are stored once;
 * ``dyq_config.json``: what the weights alone do not say: the format version, the weight method, the
-  rotation (``None``, or ``{"kind": "hadamard", "seed": s}`` after :func:`dyq.rotation.rotate_llama`: the
-  folded rotations are in the weights, the online one is rebuilt from the seed), the flag's bit-width
+  rotation (``None``, or ``{"kind": "hadamard", "seed": s, "construction": c}`` after
+  :func:`dyq.rotation.rotate_llama`: the folded rotations are in the weights, the online one is rebuilt from
+  the seed and the Hadamard construction, 1 when a file does not say), the flag's bit-width
   and, per converted layer, its group size, activation bit-width and shape.
 
 :func:`load_quantized` rebuilds the DyQLinear layers of a freshly built model (or of a Hugging Face
@@ -101,10 +102,15 @@ def read_quantization_state(directory: str | os.PathLike) -> dict[str, Any]:
     if state.get("weight_method") not in WEIGHT_METHODS:
         raise ValueError(f"{path!r} uses weight method {state.get('weight_method')!r}; this dyq knows {WEIGHT_METHODS}")
     rotation = state.get("rotation")
-    if rotation is not None and not (isinstance(rotation, dict) and rotation.get("kind") == "hadamard"
-                                     and isinstance(rotation.get("seed"), int) and rotation["seed"] >= 0):
-        raise ValueError(f"{path!r} uses rotation {rotation!r}; this dyq knows None and "
-                         "{'kind': 'hadamard', 'seed': <int >= 0>} (dyq.rotation.rotate_llama)")
+    if rotation is not None:
+        from ..rotation import HADAMARD_CONSTRUCTIONS
+
+        if not (isinstance(rotation, dict) and rotation.get("kind") == "hadamard"
+                and isinstance(rotation.get("seed"), int) and rotation["seed"] >= 0
+                and rotation.get("construction", 1) in HADAMARD_CONSTRUCTIONS):
+            raise ValueError(f"{path!r} uses rotation {rotation!r}; this dyq knows None and "
+                             "{'kind': 'hadamard', 'seed': <int >= 0>, 'construction': "
+                             f"{' or '.join(map(str, HADAMARD_CONSTRUCTIONS))}}} (dyq.rotation.rotate_llama)")
     for name, layer in state["layers"].items():
         check_group_size(layer["group_size"])
         check_bits(layer["act_bits"], f"layers[{name!r}].act_bits")
@@ -165,7 +171,8 @@ def load_quantized(model_or_config, directory: str | os.PathLike) -> nn.Module:
             from ..rotation import attach_online_rotations, untie_lm_head
 
             untie_lm_head(model)
-            attach_online_rotations(model, state["rotation"]["seed"])
+            # A file from before the construction was recorded used construction 1 (prime fields only).
+            attach_online_rotations(model, state["rotation"]["seed"], state["rotation"].get("construction", 1))
             model.dyq_rotation = dict(state["rotation"])
     missing, unexpected = _safetensors().load_model(model, os.path.join(directory, WEIGHTS_NAME), strict=False)
     if missing or unexpected:
