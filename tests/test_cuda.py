@@ -178,10 +178,12 @@ def test_gemm_with_flag_equals_gemm_at_that_precision(m, act_bits, flag_on_gpu, 
 
 @pytest.mark.parametrize("m", (1, 17))
 @pytest.mark.parametrize("value", (0, 3, 32, -1))
-def test_invalid_flag_value_gives_nan_output(m, value, rng):
+@pytest.mark.parametrize("floor", (2, 8))
+def test_invalid_flag_value_gives_nan_output(m, value, floor, rng):
+    """A floor does not turn an invalid value into a valid width."""
     qweight, scales = quantized_layer(40, 128, 32, rng)
     x = random_activations((m, 128), rng).cuda()
-    out = torch.ops.dyq.gemm_with_flag(x, qweight.cuda(), scales.cuda(), 32, pinned_flag(value))
+    out = torch.ops.dyq.gemm_with_flag(x, qweight.cuda(), scales.cuda(), 32, pinned_flag(value), None, floor)
     assert torch.isnan(out).all()
 
 
@@ -230,6 +232,41 @@ def test_cuda_graph_replays_at_the_precision_the_flag_holds(m, rng):
         for qweight, scales in layers:
             h = torch.ops.dyq.gemm(h, qweight, scales, 128, bits)
         assert torch.equal(captured, h), f"replay at {bits} bits differs from eager"
+
+
+@pytest.mark.parametrize("capture_bits", (2, 16))
+def test_cuda_graph_keeps_a_layers_floor_under_every_flag_value(capture_bits, rng):
+    """The middle layer never runs below A8 (min_act_bits = 8): the kernel applies the floor where it reads
+    the flag, whichever value the flag held at capture."""
+    k = 256
+    layers = [tuple(t.cuda() for t in quantized_layer(k, k, 128, rng)) for _ in range(3)]
+    floors = (2, 8, 2)
+    x = random_activations((3, k), rng).to(torch.bfloat16).cuda()
+    flag = pinned_flag(capture_bits)
+
+    def forward():
+        h = x
+        for (qweight, scales), floor in zip(layers, floors):
+            h = torch.ops.dyq.gemm_with_flag(h, qweight, scales, 128, flag, None, floor)
+        return h
+
+    stream = torch.cuda.Stream()
+    stream.wait_stream(torch.cuda.current_stream())
+    with torch.cuda.stream(stream):
+        forward()
+    torch.cuda.current_stream().wait_stream(stream)
+    graph = torch.cuda.CUDAGraph()
+    with torch.cuda.graph(graph):
+        captured = forward()
+
+    for bits in (2, 4, 8, 16, 2):
+        flag[0] = bits
+        graph.replay()
+        torch.cuda.synchronize()
+        h = x
+        for (qweight, scales), floor in zip(layers, floors):
+            h = torch.ops.dyq.gemm(h, qweight, scales, 128, max(bits, floor))
+        assert torch.equal(captured, h), f"replay at {bits} bits differs from eager with the floor"
 
 
 # ---- bad inputs -----------------------------------------------------------------------------------

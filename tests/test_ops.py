@@ -99,6 +99,33 @@ def test_gemm_with_flag_equals_gemm_at_the_flag_value(act_bits, rng):
                        dyq.ops.gemm(x, qweight, scales, 128, act_bits))
 
 
+@pytest.mark.parametrize("floor", ACT_BITS)
+def test_a_floor_raises_the_flag_to_it(floor, rng):
+    """gemm_with_flag(..., min_act_bits) runs at max(flag, floor); so does gemm with a fixed width."""
+    qweight, scales = dyq.ops.quantize_weight(random_weight(24, 256, rng), 128)
+    x = random_activations((5, 256), rng)
+    flag = dyq.PrecisionFlag(2)
+    for bits in ACT_BITS:
+        flag.bits = bits
+        expected = dyq.ops.gemm(x, qweight, scales, 128, max(bits, floor))
+        assert torch.equal(dyq.ops.gemm(x, qweight, scales, 128, flag.tensor, None, floor), expected)
+        assert torch.equal(dyq.ops.gemm(x, qweight, scales, 128, bits, None, floor), expected)
+    before = dyq.ops.width_counts()
+    flag.bits = 2
+    dyq.ops.gemm(x, qweight, scales, 128, flag.tensor, None, floor)
+    after = dyq.ops.width_counts()
+    assert after[max(2, floor)] == before[max(2, floor)] + 1  # the width it ran at is the one counted
+
+
+def test_a_floor_that_is_not_a_width_is_refused(rng):
+    qweight, scales = dyq.ops.quantize_weight(random_weight(8, 64, rng), 32)
+    x = random_activations((2, 64), rng)
+    with pytest.raises(RuntimeError, match="min_act_bits must be"):
+        torch.ops.dyq.gemm_with_flag(x, qweight, scales, 32, dyq.PrecisionFlag(4).tensor, None, 6)
+    with pytest.raises(ValueError, match="min_act_bits must be one of"):
+        dyq.ops.gemm(x, qweight, scales, 32, 4, None, 6)
+
+
 def test_gemm_handles_empty_batch(rng):
     qweight, scales = dyq.ops.quantize_weight(random_weight(16, 64, rng), 32)
     out = dyq.ops.gemm(torch.empty(0, 64), qweight, scales, 32, 4)
@@ -164,6 +191,8 @@ def test_opcheck_gemm_with_flag(rng):
     x = random_activations((5, 128), rng)
     torch.library.opcheck(torch.ops.dyq.gemm_with_flag.default,
                           (x, qweight, scales, 64, dyq.PrecisionFlag(4).tensor, None))
+    torch.library.opcheck(torch.ops.dyq.gemm_with_flag.default,
+                          (x, qweight, scales, 64, dyq.PrecisionFlag(4).tensor, None, 8))
 
 
 def test_opcheck_quantizers(rng):

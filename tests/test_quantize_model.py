@@ -223,6 +223,19 @@ def test_min_act_bits_keeps_the_named_layers_at_or_above_their_floor():
     assert "min_act_bits=8" in repr(mlp.up_proj)
 
 
+def test_a_compiled_layer_keeps_its_floor_under_every_flag_value():
+    """The floor travels with the flag into the op (min_act_bits), so a graph traced once follows later
+    flag writes on both sides of the floor, with no host-side branch on the flag's value."""
+    model, flag = tiny_llama(), dyq.PrecisionFlag(16)
+    dyq.quantize_model(model, group_size=32, flag=flag, min_act_bits={"up_proj": 8})
+    up = model.model.layers[0].mlp.up_proj
+    compiled = torch.compile(up, backend="eager", fullgraph=True)
+    x = torch.randn(3, 128)
+    for bits in (16, 2, 8, 4):
+        flag.bits = bits
+        assert torch.equal(compiled(x), dyq.ops.gemm(x, up.qweight, up.scales, 32, max(bits, 8)))
+
+
 def test_min_act_bits_is_saved_and_loaded(tmp_path):
     model, flag = tiny_llama(), dyq.PrecisionFlag(2)
     dyq.quantize_model(model, group_size=32, flag=flag, min_act_bits={"down_proj": 8})

@@ -10,13 +10,17 @@
 
 #include "common/cuda_precision.cuh"
 #include "common/format.h"
+#include "common/precision.h"
 
 namespace dyq::cuda {
 
 // The flag may change between launches (a captured graph replays under new values), so it is read
-// with an uncached load, once per block, by the caller's thread 0.
+// with an uncached load, once per block, by the caller's thread 0, and the floor applied here, on the
+// device, for the same reason. An invalid value stays as read (the caller writes NaN).
 __device__ __forceinline__ int read_precision(const Precision& precision) {
-  return precision.flag != nullptr ? __ldcv(precision.flag) : precision.bits;
+  if (precision.flag == nullptr) return precision.bits;
+  const int flag_bits = __ldcv(precision.flag);
+  return is_valid_act_bits(flag_bits) && flag_bits < precision.bits ? precision.bits : flag_bits;
 }
 
 // ---- activations: 8 consecutive elements as fp32 -----------------------------------------------

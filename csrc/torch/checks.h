@@ -143,10 +143,14 @@ inline void check_gemm(const at::Tensor& x, const at::Tensor& qweight, const at:
   check_act_bits(act_bits);
 }
 
+// min_act_bits: a registered width, the floor applied to the flag's value where it is read.
 inline void check_gemm_with_flag(const at::Tensor& x, const at::Tensor& qweight, const at::Tensor& scales,
-                                 int64_t group_size, const at::Tensor& flag, const std::optional<at::Tensor>& bias) {
+                                 int64_t group_size, const at::Tensor& flag, const std::optional<at::Tensor>& bias,
+                                 int64_t min_act_bits) {
   check_gemm_args(x, qweight, scales, group_size, bias);
   check_flag_tensor(flag);
+  TORCH_CHECK(is_valid_act_bits(min_act_bits), "dyq: min_act_bits must be ", registered_act_bits_text(), ", got ",
+              min_act_bits);
 }
 
 // quantize_weight: a floating-point [N, K] with K even (two INT4 codes per byte).

@@ -14,21 +14,24 @@
 
 namespace dyq {
 
-// The width of one call: `fixed_bits` (dyq::gemm) or, when `flag` is set, the flag (dyq::gemm_with_flag).
+// The width of one call: `fixed_bits` (dyq::gemm) or, when `flag` is set, the flag's value raised to at
+// least `min_bits` where it is read (dyq::gemm_with_flag; on CUDA in the kernel, so that a captured graph
+// keeps the floor under every later flag value).
 struct ActBitsSource {
   int64_t fixed_bits;
   const at::Tensor* flag;
+  int64_t min_bits;
 };
 
-inline ActBitsSource fixed_act_bits(int64_t act_bits) { return {act_bits, nullptr}; }
-inline ActBitsSource flag_act_bits(const at::Tensor& flag) { return {0, &flag}; }
+inline ActBitsSource fixed_act_bits(int64_t act_bits) { return {act_bits, nullptr, 0}; }
+inline ActBitsSource flag_act_bits(const at::Tensor& flag, int64_t min_bits) { return {0, &flag, min_bits}; }
 
 // A Backend provides
 //   using Precision = ...;                                         what its kernels take
 //   static Precision fixed(int64_t act_bits);                      act_bits already checked
-//   static std::pair<Precision, int64_t> from_flag(flag, x);       checks the flag; the width to count
-//                                                                  (any unregistered value when the host
-//                                                                  cannot know it)
+//   static std::pair<Precision, int64_t> from_flag(flag, x, min_bits);   checks the flag; the width to
+//                                                                  count, floor applied (any unregistered
+//                                                                  value when the host cannot know it)
 //   static void run(x, qweight, scales, group_size, precision, bias, out);   out non-empty, K > 0; raises
 //                                                                  when the product is out of range
 template <typename Backend>
@@ -37,8 +40,8 @@ at::Tensor gemm_op(const at::Tensor& x, const at::Tensor& qweight, const at::Ten
   typename Backend::Precision precision;
   int64_t counted_bits = act_bits.fixed_bits;
   if (act_bits.flag != nullptr) {
-    check_gemm_with_flag(x, qweight, scales, group_size, *act_bits.flag, bias);
-    std::tie(precision, counted_bits) = Backend::from_flag(*act_bits.flag, x);
+    check_gemm_with_flag(x, qweight, scales, group_size, *act_bits.flag, bias, act_bits.min_bits);
+    std::tie(precision, counted_bits) = Backend::from_flag(*act_bits.flag, x, act_bits.min_bits);
   } else {
     check_gemm(x, qweight, scales, group_size, act_bits.fixed_bits, bias);
     precision = Backend::fixed(act_bits.fixed_bits);

@@ -13,7 +13,7 @@ TORCH_LIBRARY(dyq, m) {
   m.def("gemm(Tensor x, Tensor qweight, Tensor scales, int group_size, int act_bits, Tensor? bias=None) -> Tensor");
   m.def(
       "gemm_with_flag(Tensor x, Tensor qweight, Tensor scales, int group_size, Tensor act_bits_flag, "
-      "Tensor? bias=None) -> Tensor");
+      "Tensor? bias=None, int min_act_bits=2) -> Tensor");
   m.def("hadamard_transform(Tensor x, Tensor signs, Tensor left) -> Tensor");
   // The checks alone (metadata only: they read no data, so they work on meta and fake tensors).
   m.def("_check_quantize_weight(Tensor weight, int group_size) -> ()");
@@ -22,7 +22,7 @@ TORCH_LIBRARY(dyq, m) {
   m.def("_check_gemm(Tensor x, Tensor qweight, Tensor scales, int group_size, int act_bits, Tensor? bias=None) -> ()");
   m.def(
       "_check_gemm_with_flag(Tensor x, Tensor qweight, Tensor scales, int group_size, Tensor act_bits_flag, "
-      "Tensor? bias=None) -> ()");
+      "Tensor? bias=None, int min_act_bits=2) -> ()");
   m.def("_check_hadamard_transform(Tensor x, Tensor signs, Tensor left) -> ()");
 }
 

@@ -4,6 +4,7 @@
 #include <ATen/ops/empty.h>
 #include <torch/library.h>
 
+#include <algorithm>
 #include <new>
 
 #include "activation/act_quant_cpu.h"
@@ -96,12 +97,13 @@ struct CpuGemm {
 
   static Precision fixed(int64_t act_bits) { return act_bits; }
 
-  static std::pair<Precision, int64_t> from_flag(const at::Tensor& flag, const at::Tensor&) {
+  static std::pair<Precision, int64_t> from_flag(const at::Tensor& flag, const at::Tensor&, int64_t min_bits) {
     TORCH_CHECK(flag.device().is_cpu(), "dyq: act_bits_flag must be a CPU (host) tensor for CPU inputs, got ",
                 flag.device());
-    const int64_t act_bits = flag.item<int32_t>();
-    TORCH_CHECK(is_valid_act_bits(act_bits), "dyq: act_bits_flag holds ", act_bits, "; expected ",
+    const int64_t flag_bits = flag.item<int32_t>();
+    TORCH_CHECK(is_valid_act_bits(flag_bits), "dyq: act_bits_flag holds ", flag_bits, "; expected ",
                 registered_act_bits_text());
+    const int64_t act_bits = std::max(flag_bits, min_bits);
     return {act_bits, act_bits};
   }
 
@@ -128,8 +130,8 @@ at::Tensor gemm_cpu(const at::Tensor& x, const at::Tensor& qweight, const at::Te
 
 at::Tensor gemm_with_flag_cpu(const at::Tensor& x, const at::Tensor& qweight, const at::Tensor& scales,
                               int64_t group_size, const at::Tensor& act_bits_flag,
-                              const std::optional<at::Tensor>& bias) {
-  return gemm_op<CpuGemm>(x, qweight, scales, group_size, flag_act_bits(act_bits_flag), bias);
+                              const std::optional<at::Tensor>& bias, int64_t min_act_bits) {
+  return gemm_op<CpuGemm>(x, qweight, scales, group_size, flag_act_bits(act_bits_flag, min_act_bits), bias);
 }
 
 }  // namespace

@@ -8,6 +8,8 @@
 #include <c10/cuda/CUDAGuard.h>
 #include <torch/library.h>
 
+#include <algorithm>
+
 #include "activation/act_quant_cuda.h"
 #include "activation/hadamard_cuda.h"
 #include "gemm/gemm_cuda.h"
@@ -127,11 +129,12 @@ struct CudaGemm {
   // The value is not validated here: the kernels read it when they run (a NaN output marks an invalid
   // one). The width counted is the host's read of a pinned flag at launch (no synchronization); a flag
   // in device memory, or a launch replayed from a CUDA graph, is not counted (docs/cuda.md).
-  static std::pair<Precision, int64_t> from_flag(const at::Tensor& flag, const at::Tensor& x) {
+  static std::pair<Precision, int64_t> from_flag(const at::Tensor& flag, const at::Tensor& x, int64_t min_bits) {
     check_on_cuda(x, "x");
     const c10::cuda::CUDAGuard guard(x.device());
     const int64_t host_bits = flag.is_cuda() ? 0 : *static_cast<const volatile int32_t*>(flag.const_data_ptr());
-    return {cuda::flag_precision(device_visible_flag(flag, x.device())), host_bits};
+    const int64_t counted = is_valid_act_bits(host_bits) ? std::max(host_bits, min_bits) : host_bits;
+    return {cuda::flag_precision(device_visible_flag(flag, x.device()), static_cast<int>(min_bits)), counted};
   }
 
   static void run(const at::Tensor& x, const at::Tensor& qweight, const at::Tensor& scales, int64_t group_size,
@@ -170,8 +173,8 @@ at::Tensor gemm_cuda(const at::Tensor& x, const at::Tensor& qweight, const at::T
 
 at::Tensor gemm_with_flag_cuda(const at::Tensor& x, const at::Tensor& qweight, const at::Tensor& scales,
                                int64_t group_size, const at::Tensor& act_bits_flag,
-                               const std::optional<at::Tensor>& bias) {
-  return gemm_op<CudaGemm>(x, qweight, scales, group_size, flag_act_bits(act_bits_flag), bias);
+                               const std::optional<at::Tensor>& bias, int64_t min_act_bits) {
+  return gemm_op<CudaGemm>(x, qweight, scales, group_size, flag_act_bits(act_bits_flag, min_act_bits), bias);
 }
 
 }  // namespace

@@ -58,9 +58,8 @@ class DyQLinear(nn.Module):
 
     ``min_act_bits`` (default 2: none) is a floor on the width: a layer whose flag asks for fewer bits runs
     at ``min_act_bits`` instead (``quantize_model(min_act_bits=...)`` keeps, for example, gate/up at A8 while
-    the rest of the model runs at A4). The floor is applied on the host when the layer is called (the flag is
-    read there), so it is not part of what a captured graph replays; without a floor the kernel reads the
-    flag itself, as before.
+    the rest of the model runs at A4). The floor goes to the kernel with the flag and is applied where the
+    flag is read (on CUDA, in the kernel), so a captured CUDA graph keeps it under every later flag value.
     """
 
     weight_method = "rtn"
@@ -176,11 +175,9 @@ class DyQLinear(nn.Module):
         bias = self.bias
         if bias is not None and bias.dtype != x.dtype:
             bias = bias.to(x.dtype)
-        if self.flag is None or (self.min_act_bits > 2 and self.flag.bits < self.min_act_bits):
-            act_bits = self.precision
-        else:
-            act_bits = self.flag.tensor
-        return ops.gemm(x, self.qweight, self.scales, self.group_size, act_bits, bias)
+        if self.flag is None:
+            return ops.gemm(x, self.qweight, self.scales, self.group_size, self.precision, bias)
+        return ops.gemm(x, self.qweight, self.scales, self.group_size, self.flag.tensor, bias, self.min_act_bits)
 
     # -- module plumbing ---------------------------------------------------------------------------------------
     def _apply(self, fn, recurse=True):

@@ -9,7 +9,7 @@ from __future__ import annotations
 import torch
 
 from .. import _C
-from .precision import VALID_BITS
+from .precision import VALID_BITS, check_bits
 
 
 # Every fake kernel first runs the op's C++ validation (csrc/torch/checks.h, through the ``_check_*`` ops),
@@ -45,8 +45,8 @@ def _gemm_fake(x, qweight, scales, group_size, act_bits, bias=None):
 
 
 @torch.library.register_fake("dyq::gemm_with_flag")
-def _gemm_with_flag_fake(x, qweight, scales, group_size, act_bits_flag, bias=None):
-    torch.ops.dyq._check_gemm_with_flag(x, qweight, scales, group_size, act_bits_flag, bias)
+def _gemm_with_flag_fake(x, qweight, scales, group_size, act_bits_flag, bias=None, min_act_bits=2):
+    torch.ops.dyq._check_gemm_with_flag(x, qweight, scales, group_size, act_bits_flag, bias, min_act_bits)
     return x.new_empty(tuple(x.shape[:-1]) + (qweight.shape[0],))
 
 
@@ -64,13 +64,14 @@ def _hadamard_transform_fake(x, signs, left):
 # adapters on a frozen 4-bit base need (QLoRA's backward through NF4 weights does the same).
 
 def _gemm_setup_context(ctx, inputs, output):
-    x, qweight, scales, group_size, _, bias = inputs
+    x, qweight, scales, group_size, _, bias = inputs[:6]  # gemm_with_flag adds min_act_bits
     if scales.requires_grad:
         raise RuntimeError("dyq: the INT4 weights are frozen: scales (and qweight) have no gradient; train "
                            "adapters beside the layer (LoRA) or the bias instead")
     ctx.group_size = group_size
     ctx.x_shape, ctx.x_dtype = x.shape, x.dtype
     ctx.has_bias = bias is not None
+    ctx.extra_inputs = len(inputs) - 6
     ctx.save_for_backward(qweight, scales)
 
 
@@ -82,7 +83,7 @@ def _gemm_backward(ctx, grad_out):
         grad_x = (grad_out.reshape(-1, weight.shape[0]).float() @ weight).to(ctx.x_dtype).reshape(ctx.x_shape)
     if ctx.has_bias and ctx.needs_input_grad[5]:
         grad_bias = grad_out.reshape(-1, grad_out.shape[-1]).sum(dim=0)
-    return grad_x, None, None, None, None, grad_bias
+    return (grad_x, None, None, None, None, grad_bias) + (None,) * ctx.extra_inputs
 
 
 torch.library.register_autograd("dyq::gemm", _gemm_backward, setup_context=_gemm_setup_context)
@@ -133,14 +134,20 @@ def quantize_activations(x: torch.Tensor, group_size: int, act_bits: int):
 
 
 def gemm(x: torch.Tensor, qweight: torch.Tensor, scales: torch.Tensor, group_size: int,
-         act_bits: int | torch.Tensor, bias: torch.Tensor | None = None) -> torch.Tensor:
+         act_bits: int | torch.Tensor, bias: torch.Tensor | None = None, min_act_bits: int = 2) -> torch.Tensor:
     """``x [..., K] @ W^T (+ bias)`` with INT4 weights and ``act_bits``-bit activations (16: unquantized).
 
     ``act_bits`` is a width of :data:`VALID_BITS`, or a precision flag (a one-element int32 tensor such as
-    ``PrecisionFlag.tensor``) that the kernel reads when it runs (``torch.ops.dyq.gemm_with_flag``).
+    ``PrecisionFlag.tensor``) that the kernel reads when it runs (``torch.ops.dyq.gemm_with_flag``), then
+    raises to at least ``min_act_bits``: the floor is applied where the flag is read (on CUDA in the
+    kernel), so a captured CUDA graph keeps it under every later flag value. With a fixed width the floor
+    applies likewise.
     """
     if isinstance(act_bits, torch.Tensor):
-        return torch.ops.dyq.gemm_with_flag(x, qweight, scales, group_size, act_bits, bias)
+        return torch.ops.dyq.gemm_with_flag(x, qweight, scales, group_size, act_bits, bias, min_act_bits)
+    if min_act_bits != 2:
+        check_bits(min_act_bits, "min_act_bits")
+        act_bits = max(check_bits(act_bits, "act_bits"), min_act_bits)
     return torch.ops.dyq.gemm(x, qweight, scales, group_size, act_bits, bias)
 
 
