@@ -64,20 +64,17 @@ def _prime_power(q: int) -> tuple[int, int] | None:
     return (q, 1) if q >= 2 else None
 
 
-def _poly_mulmod(a: list[int], b: list[int], modulus: list[int], r: int) -> list[int]:
-    """a * b mod (modulus, r): polynomials over GF(r) as coefficient lists, lowest degree first; modulus monic
-    of degree k, a and b of degree < k."""
-    k = len(modulus) - 1
-    product = [0] * (2 * k - 1)
-    for i, ai in enumerate(a):
-        for j, bj in enumerate(b):
-            product[i + j] = (product[i + j] + ai * bj) % r
-    for d in range(len(product) - 1, k - 1, -1):  # reduce: x^k = -(modulus[0] + ... + modulus[k-1] x^(k-1))
-        c = product[d]
+def _poly_mod(g: list[int], f: list[int], r: int) -> list[int]:
+    """The remainder of g modulo the monic f over GF(r): coefficient lists, lowest degree first; the
+    remainder has len(f) - 1 coefficients."""
+    g = list(g) + [0] * max(0, len(f) - 1 - len(g))
+    k = len(f) - 1
+    for d in range(len(g) - 1, k - 1, -1):  # x^d = x^(d-k) (x^k - f): cancel the leading term
+        c = g[d]
         if c:
             for i in range(k + 1):
-                product[d - k + i] = (product[d - k + i] - c * modulus[i]) % r
-    return product[:k]
+                g[d - k + i] = (g[d - k + i] - c * f[i]) % r
+    return g[:k]
 
 
 def _irreducible(r: int, k: int) -> list[int]:
@@ -86,18 +83,9 @@ def _irreducible(r: int, k: int) -> list[int]:
     def poly(index: int, degree: int) -> list[int]:
         return [(index // r ** i) % r for i in range(degree)] + [1]
 
-    def divides(f: list[int], g: list[int]) -> bool:  # f monic
-        g = list(g)
-        for d in range(len(g) - 1, len(f) - 2, -1):
-            c = g[d]
-            if c:
-                for i in range(len(f)):
-                    g[d - len(f) + 1 + i] = (g[d - len(f) + 1 + i] - c * f[i]) % r
-        return not any(g[:len(f) - 1])
-
     for index in range(r ** k):
         g = poly(index, k)
-        if not any(divides(poly(i, d), g) for d in range(1, k // 2 + 1) for i in range(r ** d)):
+        if all(any(_poly_mod(g, poly(i, d), r)) for d in range(1, k // 2 + 1) for i in range(r ** d)):
             return g
     raise AssertionError(f"no irreducible polynomial of degree {k} over GF({r})")  # one always exists
 
@@ -107,17 +95,18 @@ def _jacobsthal(q: int) -> torch.Tensor:
     x_i the element whose polynomial coefficients are the base-r digits of i (for a prime q, the integers
     mod q)."""
     r, k = _prime_power(q)
-    digits = torch.tensor([[(i // r ** d) % r for d in range(k)] for i in range(q)], dtype=torch.int64)
-    if k == 1:
-        squares = {(i * i) % q for i in range(1, q)}
-    else:
-        modulus = _irreducible(r, k)
-        weights = [r ** d for d in range(k)]
-        squares = {sum(c * w for c, w in zip(_poly_mulmod(a, a, modulus, r), weights))
-                   for a in digits[1:].tolist()}
+    weights = [r ** d for d in range(k)]
+    digits = torch.tensor([[(i // w) % r for w in weights] for i in range(q)], dtype=torch.int64)
+    modulus = _irreducible(r, k) if k > 1 else [0, 1]  # GF(r) itself: x mod x, the constants
+
+    def square(a: list[int]) -> list[int]:
+        return _poly_mod([sum(a[i] * a[j - i] for i in range(len(a)) if 0 <= j - i < len(a)) % r
+                          for j in range(2 * k - 1)], modulus, r)
+
+    squares = {sum(c * w for c, w in zip(square(a), weights)) for a in digits[1:].tolist()}
     chi = torch.tensor([0] + [1 if a in squares else -1 for a in range(1, q)], dtype=torch.float64)
     difference = (digits[None, :, :] - digits[:, None, :]) % r  # x_j - x_i, digit by digit
-    index = (difference * torch.tensor([r ** d for d in range(k)])).sum(-1)
+    index = (difference * torch.tensor(weights)).sum(-1)
     return chi[index]
 
 
