@@ -128,6 +128,33 @@ def quantize(base, method: str, group_size: int, calibration_ids: torch.Tensor, 
     return model, flag
 
 
+@torch.no_grad()
+def activations_only(model, eval_ids: torch.Tensor, group_size: int) -> dict[str, float]:
+    """Perplexity with the float weights kept and only the linear layers' inputs quantized, at each width
+    below 16, through dyq's own activation quantizer (``dyq.ops.quantize_activations``, dequantized as
+    ``s_x (q_x - z_x)``): the error of the activation format alone, which no weight method can remove."""
+    state = {"bits": 16}
+
+    def quantized_input(_module, inputs):
+        x = inputs[0]
+        packed, scales, zeros = dyq.ops.quantize_activations(x.contiguous(), group_size, state["bits"])
+        codes = dyq.core.reference.unpack_activations(packed, state["bits"])[..., : x.shape[-1]].float()
+        per_column = lambda t: t.float().repeat_interleave(group_size, dim=-1)[..., : x.shape[-1]]
+        return ((per_column(scales) * (codes - per_column(zeros))).to(x.dtype),)
+
+    handles = [module.register_forward_pre_hook(quantized_input) for name, module in model.named_modules()
+               if isinstance(module, torch.nn.Linear) and name.rsplit(".", 1)[-1] != "lm_head"]
+    try:
+        results = {}
+        for bits in BITS[1:]:
+            state["bits"] = bits
+            results[str(bits)] = perplexity(model, eval_ids)
+        return results
+    finally:
+        for handle in handles:
+            handle.remove()
+
+
 def one_kind_at(model, flag: dyq.PrecisionFlag, eval_ids: torch.Tensor, kind_bits: int,
                 others_bits: int) -> dict[str, float]:
     """Perplexity with the layers of one kind at ``kind_bits`` (bound to their own flag) and all others at
@@ -152,6 +179,13 @@ class Results:
     def __init__(self, path: str, payload: dict, merge: bool) -> None:
         self.path = Path(path) if Path(path).parent != Path(".") else RESULTS / path
         self.payload, self.merge = payload, merge
+        if merge and self.path.is_file():  # rows of one table share the text and the checkpoint
+            existing = json.loads(self.path.read_text())
+            for field in ("text", "checkpoint"):
+                if existing.get(field) != payload[field]:
+                    raise SystemExit(f"--merge: {self.path} was measured with another {field} "
+                                     f"({existing.get(field)} against {payload[field]}); pass the same "
+                                     "--windows, --seq-len and calibration options, or another --out")
 
     def record(self, row: dict) -> None:
         if not self.merge:
@@ -174,14 +208,15 @@ class Results:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--quick", action="store_true", help="2 windows of 128 tokens, rtn and mse only")
-    parser.add_argument("--windows", type=int, default=4, help="evaluation windows (default 4)")
+    parser.add_argument("--windows", type=int, default=2, help="evaluation windows (default 2)")
     parser.add_argument("--seq-len", type=int, default=512, help="tokens per evaluation window (default 512)")
     parser.add_argument("--calibration-windows", type=int, default=4)
     parser.add_argument("--calibration-len", type=int, default=256)
     parser.add_argument("--group-size", type=int, default=DEFAULT_GROUP_SIZE,
                         help="weights' and activations' group size; another than 64 is named in the row")
     parser.add_argument("--methods", default="rtn,mse,awq,gptq,smoothquant",
-                        help="comma-separated quantize_model methods, or smoothquant")
+                        help="comma-separated quantize_model methods, or smoothquant (\"\" for none, with "
+                             "--float-weights)")
     parser.add_argument("--rotations", default="none,hadamard", help="comma-separated: none, hadamard")
     parser.add_argument("--threads", type=int, default=1, help="torch threads (default 1)")
     parser.add_argument("--out", default="perplexity.json")
@@ -194,11 +229,15 @@ def main() -> None:
                              "e.g. gate_up=8; named in the row")
     parser.add_argument("--a8-by-kind", action="store_true",
                         help="also the perplexity with one layer kind at A8, the rest at A4")
+    parser.add_argument("--float-weights", action="store_true",
+                        help="also, per rotation, the float weights with only the activations quantized: "
+                             "the activation format's own error, a floor for every weight method")
     args = parser.parse_args()
     if args.quick:
         args.windows, args.seq_len, args.methods, args.rotations = 2, 128, "rtn,mse", "none"
     torch.set_num_threads(args.threads)
-    methods, rotations = args.methods.split(","), args.rotations.split(",")
+    methods = [m for m in args.methods.split(",") if m]  # --methods "" with --float-weights: no weight set
+    rotations = args.rotations.split(",")
     floors = {kind: int(bits) for kind, bits in (item.split("=") for item in args.min_act_bits.split(",") if item)}
     if set(floors) - set(LAYER_KINDS):
         raise SystemExit(f"--min-act-bits: layer kinds are {tuple(LAYER_KINDS)}, got {tuple(floors)}")
@@ -219,7 +258,7 @@ def main() -> None:
         "aims_vs_w4a16": {f"w4a{b}": r for b, r in AIMS.items()},
         "smoothquant_alpha": SMOOTHQUANT_ALPHA,
         "run": {"methods": methods, "rotations": rotations, "a4_by_kind": args.a4_by_kind,
-                "a8_by_kind": args.a8_by_kind},
+                "a8_by_kind": args.a8_by_kind, "float_weights": args.float_weights},
         "rows": [],
     }
     results_file = Results(args.out, payload, args.merge)
@@ -247,6 +286,17 @@ def main() -> None:
                         "cpu_seconds": time.process_time() - cpu_start})
         elif rotation != "none":
             raise SystemExit(f"--rotations: unknown rotation {rotation!r} (none, hadamard)")
+        if args.float_weights:
+            start, cpu_start = time.time(), time.process_time()
+            float_ppl = perplexity(base, eval_ids)
+            by_width = activations_only(base, eval_ids, args.group_size)
+            name = "fp32 weights" + (" + hadamard" if rotation != "none" else "")
+            if args.group_size != DEFAULT_GROUP_SIZE:
+                name += f", group {args.group_size}"
+            record({"config": name, "kind": "float_weights", "rotation": rotation, "method": None,
+                    "group_size": args.group_size, "perplexity": {"fp32": float_ppl, **by_width},
+                    "ratio_vs_fp32": {b: v / float_ppl for b, v in by_width.items()},
+                    "seconds": time.time() - start, "cpu_seconds": time.process_time() - cpu_start})
         for method in methods:
             start, cpu_start = time.time(), time.process_time()
             model, flag = quantize(base, method, args.group_size, calibration_ids, floors)
@@ -301,6 +351,13 @@ def main() -> None:
             print_table(["config", "W4A16", *LAYER_KINDS, "all at A4"],
                         [[row["config"], f"{row['w4a16']:.2f}", *(f"{row['perplexity'][k]:.2f}" for k in LAYER_KINDS),
                           f"{row['w4a4']:.2f}"] for row in kinds], title=title)
+    format_rows = [row for row in results_file.payload["rows"] if row.get("kind") == "float_weights"]
+    if format_rows:
+        print_table(["config", "fp32", "A8", "A4", "A2", "A8/fp32", "A4/fp32", "A2/fp32"],
+                    [[row["config"], f"{row['perplexity']['fp32']:.2f}",
+                      *(f"{row['perplexity'][str(b)]:.2f}" for b in (8, 4, 2)),
+                      *(f"{row['ratio_vs_fp32'][str(b)]:.3f}" for b in (8, 4, 2))] for row in format_rows],
+                    title="Float weights, only the activations quantized (the activation format's own error)")
     print(f"wrote {results_file.path}")
 
 
