@@ -249,6 +249,18 @@ def test_min_act_bits_is_saved_and_loaded(tmp_path):
         torch.testing.assert_close(loaded(ids).logits, model(ids).logits)
 
 
+def test_min_act_bits_refuses_a_pattern_that_reaches_no_converted_layer():
+    """A misspelt name, or one that only skipped layers carry, would leave every layer without its floor."""
+    model = tiny_llama()
+    before = {n: p.clone() for n, p in model.state_dict().items()}
+    with pytest.raises(ValueError, match=r"min_act_bits: \['gate_prj'\] match no layer"):
+        dyq.quantize_model(model, min_act_bits={"gate_proj": 8, "gate_prj": 8})
+    with pytest.raises(ValueError, match=r"\['lm_head'\] match no layer"):
+        dyq.quantize_model(model, min_act_bits={"lm_head": 8})  # skipped by default
+    assert not any(isinstance(m, dyq.DyQLinear) for m in model.modules())  # refused before converting
+    assert all(torch.equal(before[n], p) for n, p in model.state_dict().items())
+
+
 def test_min_act_bits_refuses_a_width_that_does_not_exist():
     with pytest.raises(ValueError, match=r"min_act_bits\['gate_proj'\]"):
         dyq.quantize_model(tiny_llama(), min_act_bits={"gate_proj": 6})

@@ -159,6 +159,15 @@ def quantize_model(model: nn.Module, group_size: int = 128, skip: Iterable[SkipP
     def skipped_as(key: int) -> str | None:
         return next((n for n in names[key] if _matches(n, skip)), None)
 
+    # A floor whose pattern reaches no converted layer would do nothing, silently (a misspelt name): refused
+    # here, before any method changes the model.
+    converted_names = [n for key in modules if skipped_as(key) is None for n in names[key]]
+    idle = [pattern for pattern in floors if not any(_matches(n, (pattern,)) for n in converted_names)]
+    if idle:
+        example = f" (such as {converted_names[0]!r})" if converted_names else ""
+        raise ValueError(f"min_act_bits: {idle} match no layer that is converted{example}; patterns are matched "
+                         "like skip's, against each layer's full name and its last component")
+
     channel_weight: dict[int, torch.Tensor | None] = {}
     hessians: dict[int, torch.Tensor] = {}
     if method == "awq":
