@@ -74,6 +74,7 @@ def test_dyq_episode_runs_every_gemm_at_the_width_it_published(runner, env):
     warm = [s for s in episode.sensitivity if np.isfinite(s)]
     assert warm and all(s >= 0 for s in warm)
     assert all(np.all(np.abs(a) <= 1) for a in episode.actions)
+    assert episode.cpu_isa == dyq.cpu_info()["isa"]
 
 
 def test_static_and_float_configurations(runner, env):
@@ -200,8 +201,34 @@ def test_each_row_records_the_cpu_path_it_ran_on(tmp_path, monkeypatch):
     assert (configs["fp32"]["cpu_isa"], configs["dyq"]["cpu_isa"]) == ("avx512_bf16", "avx2")
     assert "cpu_isa" not in data["tasks"][TASK]
     assert "CPU kernel path per row: fp32 avx512_bf16, dyq avx2." in evaluate.markdown_table(data)
-    data = evaluate.update_results(out, TASK, [0], "ckpt", "abc", {"fp32": row})
+    rerun = evaluate.summarize([{"seed": 0, "success": True, "steps": 1, "bits": [16], "latency_ms": [1.0],
+                                 "prefill_kernel_bits": [{}], "decode_kernel_bits": [{}], "cpu_isa": "avx2"}])
+    data = evaluate.update_results(out, TASK, [0], "ckpt", "abc", {"fp32": rerun})  # fp32 run again here
     assert "CPU kernel path per row" not in evaluate.markdown_table(data)  # one path: nothing to say
+
+
+def test_a_row_takes_its_cpu_path_from_its_episodes_not_from_the_machine_that_summarizes(tmp_path, monkeypatch):
+    out = tmp_path / "closed_loop.json"
+    monkeypatch.setattr(dyq, "cpu_info", lambda: {"isa": "avx2"})
+
+    def episode(seed, isa=None):
+        return {"seed": seed, "success": True, "steps": 1, "bits": [16], "latency_ms": [1.0],
+                "prefill_kernel_bits": [{}], "decode_kernel_bits": [{}], **({"cpu_isa": isa} if isa else {})}
+
+    recorded = evaluate.summarize([episode(0, "amx"), episode(1, "avx512")])
+    assert recorded["cpu_isa"] == "amx+avx512"
+    data = evaluate.update_results(out, TASK, [0, 1], "ckpt", "abc", {"w4a8": recorded})
+    assert data["tasks"][TASK]["configs"]["w4a8"]["cpu_isa"] == "amx+avx512"
+    # Episodes cached before they recorded the path: a new row takes this machine's, and re-summarizing
+    # it elsewhere keeps what it was written with.
+    unrecorded = evaluate.summarize([episode(0), episode(1, "amx")])
+    assert "cpu_isa" not in unrecorded
+    data = evaluate.update_results(out, TASK, [0, 1], "ckpt", "abc", {"fp32": unrecorded})
+    assert data["tasks"][TASK]["configs"]["fp32"]["cpu_isa"] == "avx2"
+    monkeypatch.setattr(dyq, "cpu_info", lambda: {"isa": "avx512_bf16"})
+    data = evaluate.update_results(out, TASK, [0, 1], "ckpt", "abc", {"fp32": unrecorded, "w4a8": recorded})
+    configs = data["tasks"][TASK]["configs"]
+    assert (configs["fp32"]["cpu_isa"], configs["w4a8"]["cpu_isa"]) == ("avx2", "amx+avx512")
 
 
 def test_checkpoints_are_named_the_same_wherever_dyq_is_installed(tmp_path, monkeypatch):

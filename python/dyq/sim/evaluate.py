@@ -232,6 +232,9 @@ def summarize(episodes: list[dict[str, Any]]) -> dict[str, Any]:
             "mean": float(latency.mean()) if len(latency) else math.nan,
         },
         **({"per_task": per_task} if per_task else {}),
+        # The CPU path(s) the episodes ran on, when every episode records it (update_results fills the rest).
+        **({"cpu_isa": "+".join(sorted({e["cpu_isa"] for e in episodes}))}
+           if episodes and all(e.get("cpu_isa") for e in episodes) else {}),
         "per_seed": {
             str(e["seed"]): {"success": bool(e["success"]), "steps": e["steps"],
                              "mean_bits": float(np.mean(e["bits"])), "bits_runs": run_lengths(e["bits"])}
@@ -287,8 +290,13 @@ def update_results(out: Path, task: str, seeds: list[int], checkpoint: str, dige
     for row in entry["configs"].values():
         if earlier_isa is not None:
             row.setdefault("cpu_isa", earlier_isa)
+    # A row whose episodes do not all record their path (cached before they did) keeps the path the row was
+    # first written with, so re-summarizing it on another machine does not relabel it; a new one takes this
+    # machine's.
     isa = dyq.cpu_info()["isa"]
-    entry["configs"].update({name: {**row, "cpu_isa": isa} for name, row in rows.items()})
+    entry["configs"].update({
+        name: {**row, "cpu_isa": row.get("cpu_isa") or entry["configs"].get(name, {}).get("cpu_isa") or isa}
+        for name, row in rows.items()})
     entry["comparisons"] = [c for c in (compare(entry["configs"], a, b) for a, b in COMPARISONS) if c]
     data["device"] = "cpu"
     data["environment"] = results_io.environment()

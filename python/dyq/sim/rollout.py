@@ -258,6 +258,7 @@ class Episode:
     latency_ms: list[float]  # prefill + decode of the policy, including the dispatcher's hand-off
     final_eef: list[float] = dataclasses.field(default_factory=list)
     final_object: list[float] = dataclasses.field(default_factory=list)
+    cpu_isa: str = ""  # the CPU kernel path the policy ran on (dyq.cpu_info()); "" in episodes cached before
 
     def to_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)
@@ -359,4 +360,4 @@ def run_episode(runner: PolicyRunner, task: str, config: RunConfig | str, seed: 
         runner.flag.bits = 16
     return Episode(task=task, config=config.name, seed=int(seed), success=success, steps=len(log["bits"]),
                    final_eef=[float(v) for v in obs["robot0_eef_pos"]],
-                   final_object=[float(v) for v in envs.object_pos(task, obs)], **log)
+                   final_object=[float(v) for v in envs.object_pos(task, obs)], cpu_isa=dyq.cpu_info()["isa"], **log)
