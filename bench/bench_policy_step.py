@@ -2,14 +2,21 @@
 tokens, each one forward with the KV cache, for torch fp32 and bf16 against dyq at every width.
 
 Two Llama configs with random weights (transformers' LlamaConfig, nothing downloaded): the closed-loop
-policy's (python/dyq/sim/policies/*/policy.json) and one of about 0.5 B parameters. dyq runs
-``dyq.quantize_model`` on the bf16 model (its LM head and everything outside the linear layers stay bf16,
-as in the bf16 baseline) and then sets the width with ``dyq.set_precision``. Beside the median step time,
-a second, instrumented pass records the share of the step spent inside dyq's GEMMs (forward hooks on every
+policy's (python/dyq/sim/policies/*/policy.json) and one of about 0.5 B parameters. The prefill computes
+the logits of its last position only (``logits_to_keep=1``), as ``generate`` and dyq's own policy do: the
+first action token needs no others.
+
+dyq runs ``dyq.quantize_model`` on a copy of the model in its base dtype (its LM head and everything
+outside the linear layers stay in that dtype) and then sets the width with ``dyq.set_precision``. The base
+is bf16 where the CPU computes in bf16 (dyq's ``avx512_bf16`` and ``amx`` paths), as in the bf16
+baseline, and fp32 elsewhere: on a CPU without bf16 dot products oneDNN emulates bf16, and a user would
+not run the rest of the model in it (``--dyq-base`` overrides). Beside the median step time, a second,
+instrumented pass records the share of the step spent inside dyq's GEMMs (forward hooks on every
 DyQLinear); the rest is attention, norms, the LM head and framework overhead.
 
     python bench/bench_policy_step.py                  # both configs
     python bench/bench_policy_step.py --config policy --prompt 256
+    python bench/bench_policy_step.py --config policy --prompt 16 --repeats 1 --out /tmp/step.json  # smoke
 """
 from __future__ import annotations
 
@@ -24,9 +31,11 @@ import torch
 
 import dyq
 from dyq.results import environment, median_ms, print_table, write_json
+from dyq.sim.policy import cache_keyword
 
 ACTION_TOKENS = 7
 BITS = [16, 8, 4, 2]
+BF16_PATHS = ("avx512_bf16", "amx")  # dyq's CPU paths whose CPUs have bf16 dot products
 
 
 def policy_config() -> dict:
@@ -56,13 +65,21 @@ def build_model(settings: dict, prompt: int):
     return LlamaForCausalLM(config).eval()
 
 
+def prefill(model, prompt_ids: torch.Tensor):
+    """The prompt's forward into a fresh KV cache, which later calls grow in place (as in dyq's policy)."""
+    from transformers import DynamicCache
+
+    cache = {cache_keyword(): DynamicCache()}
+    return model(input_ids=prompt_ids, use_cache=True, logits_to_keep=1, **cache), cache
+
+
 def control_step(model, prompt_ids: torch.Tensor) -> torch.Tensor:
-    out = model(input_ids=prompt_ids, use_cache=True)
-    past, token = out.past_key_values, out.logits[:, -1:].argmax(-1)
+    out, cache = prefill(model, prompt_ids)
+    token = out.logits[:, -1:].argmax(-1)
     tokens = []
     for _ in range(ACTION_TOKENS):
-        out = model(input_ids=token, past_key_values=past, use_cache=True)
-        past, token = out.past_key_values, out.logits[:, -1:].argmax(-1)
+        out = model(input_ids=token, use_cache=True, logits_to_keep=1, **cache)
+        token = out.logits[:, -1:].argmax(-1)
         tokens.append(token)
     return torch.cat(tokens, dim=1)
 
@@ -91,30 +108,34 @@ def gemm_share(model, step) -> float:
     return spent[0] / total
 
 
-def time_config(name: str, prompt: int, repeats: int) -> dict:
+def default_dyq_base() -> str:
+    return "bf16" if dyq.cpu_info()["isa"] in BF16_PATHS else "fp32"
+
+
+def time_config(name: str, prompt: int, repeats: int, dyq_base: str) -> dict:
     settings = CONFIGS[name]()
     fp32 = build_model(settings, prompt)
     parameters = sum(p.numel() for p in fp32.parameters())
     bf16 = copy.deepcopy(fp32).to(torch.bfloat16)
-    quantized = copy.deepcopy(bf16)
+    quantized = copy.deepcopy(bf16 if dyq_base == "bf16" else fp32)
     dyq.quantize_model(quantized)
     prompt_ids = torch.randint(3, settings["vocab_size"], (1, prompt))
-    timings, prefill, shares, kernels = {}, {}, {}, {}
+    timings, prefill_ms, shares, kernels = {}, {}, {}, {}
     with torch.inference_mode():
         for label, model in [("fp32", fp32), ("bf16", bf16)]:
             timings[label] = median_ms(lambda: control_step(model, prompt_ids), warmup=1, repeats=repeats)
-            prefill[label] = median_ms(lambda: model(input_ids=prompt_ids, use_cache=True), warmup=1, repeats=repeats)
+            prefill_ms[label] = median_ms(lambda: prefill(model, prompt_ids), warmup=1, repeats=repeats)
         for bits in BITS:
             label = f"w4a{bits}"
             dyq.set_precision(quantized, bits)
             timings[label] = median_ms(lambda: control_step(quantized, prompt_ids), warmup=1, repeats=repeats)
-            prefill[label] = median_ms(lambda: quantized(input_ids=prompt_ids, use_cache=True), warmup=1,
-                                       repeats=repeats)
+            prefill_ms[label] = median_ms(lambda: prefill(quantized, prompt_ids), warmup=1, repeats=repeats)
             shares[label] = gemm_share(quantized, lambda: control_step(quantized, prompt_ids))
             kernels[label] = {"prefill": dyq.cpu_gemm_kernel(prompt, settings["hidden_size"], 128, bits),
                               "decode": dyq.cpu_gemm_kernel(1, settings["hidden_size"], 128, bits)}
     return {"config": name, "settings": settings, "parameters": parameters, "prompt_tokens": prompt,
-            "decoded_tokens": ACTION_TOKENS, "step_ms": timings, "prefill_ms": prefill, "dyq_gemm_share": shares,
+            "decoded_tokens": ACTION_TOKENS, "prefill_logits": "last position", "dyq_base_dtype": dyq_base,
+            "step_ms": timings, "prefill_ms": prefill_ms, "dyq_gemm_share": shares,
             "dyq_kernel": kernels}
 
 
@@ -124,11 +145,14 @@ def main() -> None:
     parser.add_argument("--prompt", type=int, help="prompt tokens (default: 256 for policy, 64 for 0.5b)")
     parser.add_argument("--threads", type=int, default=torch.get_num_threads())
     parser.add_argument("--repeats", type=int, default=5)
+    parser.add_argument("--dyq-base", choices=["bf16", "fp32"], default=None,
+                        help="dtype of the model dyq converts (default: bf16 on CPUs with bf16 dot products, else fp32)")
     parser.add_argument("--out", default="policy_step_cpu.json")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     load_before = os.getloadavg()
-    results = [time_config(name, args.prompt or DEFAULT_PROMPT[name], args.repeats)
+    dyq_base = args.dyq_base or default_dyq_base()
+    results = [time_config(name, args.prompt or DEFAULT_PROMPT[name], args.repeats, dyq_base)
                for name in args.config or ["policy", "0.5b"]]
     labels = ["fp32", "bf16"] + [f"w4a{b}" for b in BITS]
     rows = []
@@ -137,10 +161,13 @@ def main() -> None:
             step, pre = r["step_ms"][label], r["prefill_ms"][label]
             share = r["dyq_gemm_share"].get(label)
             rows.append([f"{r['config']} ({r['parameters'] / 1e6:.0f} M)", r["prompt_tokens"], label, f"{step:.1f}",
-                         f"{pre:.1f}", f"{step - pre:.1f}", f"{r['step_ms']['bf16'] / step:.2f}x",
+                         f"{pre:.1f}", f"{step - pre:.1f}", f"{r['step_ms']['fp32'] / step:.2f}x",
+                         f"{r['step_ms']['bf16'] / step:.2f}x",
                          "" if share is None else f"{100 * share:.0f} %"])
-    print_table(["config", "prompt", "model", "step ms", "prefill ms", "decode ms", "bf16 / this", "in dyq GEMMs"],
-                rows, title=f"One control step (prefill + {ACTION_TOKENS} decoded tokens), {args.threads} thread(s)")
+    print_table(["config", "prompt", "model", "step ms", "prefill ms", "decode ms", "fp32 / this", "bf16 / this",
+                 "in dyq GEMMs"],
+                rows, title=f"One control step (prefill + {ACTION_TOKENS} decoded tokens), {args.threads} thread(s), "
+                            f"dyq on the {dyq_base} model, CPU path {dyq.cpu_info()['isa']}")
     load_after = os.getloadavg()
     print(f"load average (1, 5, 15 min): {load_before} before, {load_after} after")
     path = write_json(args.out, {"benchmark": "policy_step_cpu", "environment": environment(),

@@ -1,0 +1,54 @@
+"""The CPU benchmarks run end to end on tiny settings and write the JSON their docstrings promise.
+
+Only the structure is checked (every row, every peer, positive medians, the kernel each call ran): speed
+is measured by the benchmarks themselves, never asserted in a test.
+"""
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+import dyq
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def run_bench(script: str, *args: str) -> None:
+    subprocess.run([sys.executable, str(ROOT / "bench" / script), *args], check=True, cwd=ROOT,
+                   stdout=subprocess.PIPE, stderr=subprocess.STDOUT, timeout=600)
+
+
+def test_bench_linear_times_every_peer_and_width(tmp_path):
+    out = tmp_path / "linear.json"
+    run_bench("bench_linear.py", "--shape", "256x512", "--batches", "1", "8", "--threads", "1", "--modes", "hot",
+              "--repeats", "2", "--out", str(out))
+    result = json.loads(out.read_text())
+    assert result["environment"]["cpu_isa"] == dyq.cpu_info()["isa"]
+    (run,) = result["runs"]
+    assert run["threads"] == 1 and run["stream_read_gbps"] > 0
+    assert [(r["m"], r["n"], r["k"], r["mode"]) for r in run["results"]] == [(1, 256, 512, "hot"), (8, 256, 512, "hot")]
+    for r in run["results"]:
+        assert set(r["median_ms"]) >= {"fp32", "bf16", "int8_dynamic", "w4a16", "w4a8", "w4a4", "w4a2"}
+        assert all(t > 0 for t in r["median_ms"].values())
+        assert r["dyq_kernel"]["w4a8"] == dyq.cpu_gemm_kernel(r["m"], r["k"], 128, 8)
+
+
+def test_bench_policy_step_times_a_control_step_at_every_width(tmp_path):
+    pytest.importorskip("transformers")
+    out = tmp_path / "step.json"
+    run_bench("bench_policy_step.py", "--config", "policy", "--prompt", "8", "--repeats", "1", "--threads", "1",
+              "--out", str(out))
+    result = json.loads(out.read_text())
+    (step,) = result["results"]
+    labels = {"fp32", "bf16", "w4a16", "w4a8", "w4a4", "w4a2"}
+    assert set(step["step_ms"]) == labels and set(step["prefill_ms"]) == labels
+    assert all(t > 0 for t in [*step["step_ms"].values(), *step["prefill_ms"].values()])
+    assert step["prompt_tokens"] == 8 and step["decoded_tokens"] == 7
+    assert step["prefill_logits"] == "last position"
+    expected_base = "bf16" if dyq.cpu_info()["isa"] in ("avx512_bf16", "amx") else "fp32"
+    assert step["dyq_base_dtype"] == expected_base
+    assert set(step["dyq_gemm_share"]) == {"w4a16", "w4a8", "w4a4", "w4a2"}
+    assert all(0 < share < 1 for share in step["dyq_gemm_share"].values())
+    assert step["dyq_kernel"]["w4a2"]["decode"] == dyq.cpu_gemm_kernel(1, step["settings"]["hidden_size"], 128, 2)
