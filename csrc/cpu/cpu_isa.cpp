@@ -44,14 +44,14 @@ bool avx512_runs_here() {
 
 bool avx512_bf16_runs_here() { return avx512_runs_here() && __builtin_cpu_supports("avx512bf16"); }
 
-// CPUID leaf 7 reports AMX-TILE (EDX bit 24) and AMX-INT8 (bit 25). Linux then grants a process the tile
+// CPUID leaf 7 reports AMX-BF16 (EDX bit 22), AMX-TILE (bit 24) and AMX-INT8 (bit 25). Linux then grants a process the tile
 // data state only on request (arch_prctl ARCH_REQ_XCOMP_PERM for XFEATURE_XTILEDATA); without it the first
 // tile instruction faults. Asked once, when the paths are first listed.
 bool amx_runs_here() {
   static const bool runs = [] {
     unsigned eax = 0, ebx = 0, ecx = 0, edx = 0;
     if (!avx512_bf16_runs_here() || !__get_cpuid_count(7, 0, &eax, &ebx, &ecx, &edx)) return false;
-    if ((edx & (1u << 24)) == 0 || (edx & (1u << 25)) == 0) return false;
+    if ((edx & (1u << 22)) == 0 || (edx & (1u << 24)) == 0 || (edx & (1u << 25)) == 0) return false;
     constexpr long kArchReqXcompPerm = 0x1023, kXfeatureXtiledata = 18;
     return syscall(SYS_arch_prctl, kArchReqXcompPerm, kXfeatureXtiledata) == 0;
   }();
@@ -93,7 +93,7 @@ const std::vector<CpuPath>& cpu_paths() {
   // cpu/kernels_<isa>.cpp and its name and target in cpu/isa_region.h.
   static const std::vector<CpuPath> paths = {
 #if defined(__x86_64__)
-      {"amx", "AMX-TILE and AMX-INT8 (granted by the OS), with AVX-512 VNNI, VBMI and BF16", amx_runs_here,
+      {"amx", "AMX-TILE, AMX-INT8 and AMX-BF16 (granted by the OS), with AVX-512 VNNI, VBMI and BF16", amx_runs_here,
        &avx512_amx::kernels},
       {"avx512_bf16", "AVX-512 F/BW/DQ/VL with VNNI, VBMI and BF16", avx512_bf16_runs_here, &avx512_bf16::kernels},
       {"avx512", "AVX-512 F/BW/DQ/VL with VNNI and VBMI", avx512_runs_here, &avx512::kernels},

@@ -24,7 +24,7 @@
 #define DYQ_ISA_NAMESPACE avx512_amx
 #define DYQ_ISA_NAME "amx"
 #define DYQ_ISA_TARGET \
-  "avx512f,avx512bw,avx512dq,avx512vl,avx512vnni,avx512vbmi,avx512bf16,amx-tile,amx-int8,avx2,fma,f16c"
+  "avx512f,avx512bw,avx512dq,avx512vl,avx512vnni,avx512vbmi,avx512bf16,amx-tile,amx-int8,amx-bf16,avx2,fma,f16c"
 #elif defined(DYQ_CPU_ISA_AVX512_BF16)
 #define DYQ_CPU_ISA_AVX512 1
 #define DYQ_AVX512_HAS_BF16 1

@@ -1,22 +1,40 @@
-// The AMX-INT8 tile loop of the act_bits 2/4/8 GEMM (docs/numerics.md, section 3), written once over a
-// Tiles type: NativeTiles issues the AMX instructions (the "amx" path, cpu/kernels_avx512_amx.cpp), and
-// EmulatedTiles performs the same tile operations in scalar C++, so that the blocking, the tile
-// configuration and the epilogue are tested on every CPU (gemm/gemm_cpu_amx_emulated.h).
+// The AMX tile loop of the GEMM for many activation rows (docs/numerics.md, section 3), written once over
+// a Tiles type and a tile-product kind:
+// - Tiles: NativeTiles issues the AMX instructions (the "amx" path, cpu/kernels_avx512_amx.cpp), and
+//   EmulatedTiles performs the same tile operations in scalar C++, as the instructions define them, so
+//   that the blocking, the tile configuration, the panel layout and the epilogue are tested on every
+//   CPU (gemm/gemm_cpu_amx_emulated.h).
+// - AmxInt8 (act_bits 2/4/8): tdpbusd of u8 activation codes q_x with s8 weight codes q_w. Per group the
+//   C tiles hold the exact integer sums sum q_x q_w (below 2^24), and the epilogue forms
+//   s_x s_w (sum q_x q_w - z_x sum q_w) in fp32, as the VNNI kernels do.
+// - AmxBf16 (act_bits 16): tdpbf16ps of x rounded to bf16 (round to nearest even) with the weight codes
+//   as bf16 (exact), accumulated in fp32 per group and scaled by s_w, the numerics of the AVX512-BF16
+//   kernels. Like vdpbf16ps, tdpbf16ps treats bf16 denormals as 0 and flushes fp32 denormal results.
 //
-// Data layout. The activations are u8 codes q_x, row-major with a pitch of whole groups (zeros past k,
-// rows padded to 32 with zeros), with each (row, group)'s z_x and s_x beside them. A panel of 32 weight
-// rows is packed as s8 codes in the VNNI order tdpbusd reads its B operand in: row t of the packed panel
-// holds, for each of the 32 output columns j, the four codes q_w[j, 4t..4t+3] (128 bytes a row), so that
-// its left and right 64 bytes are the B tiles of output columns 0..15 and 16..31. Tiles: C0..C3 = the 2 x 2
-// int32 accumulators of 32 activation rows x 32 output columns, A0/A1 = 16 activation rows x kStep bytes,
-// B0/B1 = kStep / 4 rows x 64 bytes. kStep is 64 columns (the widest A tile), or the group size where it is
-// smaller, so that one group is a whole number of steps.
+// Weight panels. 32 output rows at a time, over a slice of kAmxPanelDepth columns, are unpacked once
+// into the layout of the AVX-512 panel path (gemm/gemm_cpu_avx512.h, WeightPanel): steps[quad][step][32]
+// dwords, quad q covering columns 8q..8q+7 and each step one dword per output row. That is the layout of
+// B tiles: a B row is one step of the 32 output rows (128 bytes), its left 64 bytes in the B tile of
+// outputs 0..15 and its right 64 bytes in that of outputs 16..31, and consecutive steps are consecutive
+// B rows.
+// - AmxInt8 has two steps per quad, the s8 codes of the even columns 8q, 8q + 2, 8q + 4, 8q + 6, then
+//   of the odd ones; the activation codes are stored in the same order within every 8 columns, so that
+//   A's dword i meets B's row i.
+// - AmxBf16 has four steps per quad, the bf16 pairs of columns (8q + 2b, 8q + 2b + 1), which is the
+//   natural order of x's bf16 pairs.
+// The native path unpacks with the AVX-512 panel packers, once per slice and panel for every activation
+// row, so that unpacking is a small share of the tile work (the scalar unpacking of every call's whole
+// weight matrix that came before cost more than the tile products themselves); the emulation unpacks the
+// same layout in plain C++ (ScalarAmxPanel).
 //
-// Per group, the C tiles hold the exact integer sums sum q_x q_w (below 2^24); they are stored and the
-// epilogue forms s_x s_w (sum q_x q_w - z_x sum q_w) in fp32, as the VNNI kernels do.
+// Tiles: C0..C3 = the 2 x 2 accumulators of 32 activation rows x 32 output columns, A0/A1 = 16 activation
+// rows x a step's bytes, B0/B1 = a step's bytes / 4 rows x 64 bytes. A step is 64 bytes of A (64 columns
+// of u8 codes, 32 of bf16), or the group's bytes where the group is smaller, so that a group is a whole
+// number of steps.
 #pragma once
 
 #include <algorithm>
+#include <cmath>
 #include <cstdint>
 #include <cstring>
 #include <vector>
@@ -30,22 +48,83 @@
 DYQ_ISA_BEGIN
 namespace dyq::cpu::DYQ_ISA_NAMESPACE {
 
-constexpr int64_t kAmxTileRows = 16;    // rows of an A or C tile
-constexpr int64_t kAmxRowBlock = 32;    // activation rows per pass: two A tiles
+constexpr int64_t kAmxTileRows = 16;      // rows of an A or C tile
+constexpr int64_t kAmxRowBlock = 32;      // activation rows per pass: two A tiles
 constexpr int64_t kAmxPanelColumns = 32;  // output columns per panel: two B tiles
-constexpr int64_t kAmxMaxStep = 64;     // columns of K per tdpbusd: an A tile row of 64 bytes
+constexpr int64_t kAmxPanelDepth = 256;   // columns per unpacked slice: a multiple of every group size
+constexpr int64_t kAmxMaxStepBytes = 64;  // an A tile row
+constexpr int64_t kAmxQuadColumns = 8;    // columns of one quad (one dword of packed weights)
 
-inline int64_t amx_step(int group_size) { return std::min<int64_t>(kAmxMaxStep, group_size); }
+// The s8 code of column c of a packed weight row.
+inline int weight_code(const uint8_t* row, int64_t c) {
+  return sign_extend_nibble(c % 2 == 0 ? row[c / 2] & 0xFu : row[c / 2] >> 4);
+}
+
+// The bf16 bit pattern of a float, rounded to nearest even (NaN stays NaN), as vcvtneps2bf16 rounds.
+inline uint16_t bf16_bits(float value) {
+  uint32_t bits;
+  std::memcpy(&bits, &value, sizeof(bits));
+  if ((bits & 0x7FFFFFFFu) > 0x7F800000u) return static_cast<uint16_t>((bits >> 16) | 0x40u);
+  return static_cast<uint16_t>((bits + 0x7FFFu + ((bits >> 16) & 1u)) >> 16);
+}
+
+inline float bf16_value(uint16_t bits) {
+  const uint32_t wide = uint32_t{bits} << 16;
+  float value;
+  std::memcpy(&value, &wide, sizeof(value));
+  return value;
+}
+
+struct AmxInt8 {
+  static constexpr int64_t kElementBytes = 1;  // bytes of one activation column in A
+  static constexpr int64_t kStepsPerQuad = 2;  // B rows per 8 columns
+  static constexpr bool kQuantized = true;     // u8 codes with z_x and s_x, and sum q_w per group
+  // Position of column c within its 8 columns in A and in the panel: the even columns, then the odd ones.
+  static int64_t order(int64_t c) { return c / 8 * 8 + (c % 2) * 4 + c % 8 / 2; }
+  // The dword of step s of quad q for one output row (packed weights `row`; columns past k are 0).
+  static uint32_t step_dword(const uint8_t* row, int64_t k, int64_t quad, int s) {
+    uint32_t dword = 0;
+    for (int b = 0; b < 4; ++b) {
+      const int64_t c = quad * kAmxQuadColumns + 2 * b + s;
+      const int code = c < k ? weight_code(row, c) : 0;
+      dword |= uint32_t{static_cast<uint8_t>(static_cast<int8_t>(code))} << (8 * b);
+    }
+    return dword;
+  }
+  template <int kC, int kA, int kB, typename Tiles>
+  static void product(Tiles& tiles) {
+    tiles.template dpbusd<kC, kA, kB>();
+  }
+};
+
+struct AmxBf16 {
+  static constexpr int64_t kElementBytes = 2;
+  static constexpr int64_t kStepsPerQuad = 4;
+  static constexpr bool kQuantized = false;
+  static int64_t order(int64_t c) { return c; }
+  static uint32_t step_dword(const uint8_t* row, int64_t k, int64_t quad, int s) {
+    uint32_t dword = 0;
+    for (int b = 0; b < 2; ++b) {
+      const int64_t c = quad * kAmxQuadColumns + 2 * s + b;
+      dword |= uint32_t{bf16_bits(static_cast<float>(c < k ? weight_code(row, c) : 0))} << (16 * b);
+    }
+    return dword;
+  }
+  template <int kC, int kA, int kB, typename Tiles>
+  static void product(Tiles& tiles) {
+    tiles.template dpbf16ps<kC, kA, kB>();
+  }
+};
 
 // The tile registers in memory, with the operations the loop uses, each as the AMX instruction defines it.
 struct EmulatedTiles {
   alignas(64) uint8_t tiles[8][16][64];
   int rows[8], bytes[8];
 
-  void configure(int64_t step) {
-    for (int t = 0; t < 4; ++t) rows[t] = 16, bytes[t] = 64;                    // C: 16 x 16 int32
-    for (int t = 4; t < 6; ++t) rows[t] = 16, bytes[t] = static_cast<int>(step);  // A: 16 rows x step u8
-    for (int t = 6; t < 8; ++t) rows[t] = static_cast<int>(step / 4), bytes[t] = 64;  // B: step/4 rows x 16 x 4 s8
+  void configure(int64_t step_bytes) {
+    for (int t = 0; t < 4; ++t) rows[t] = 16, bytes[t] = 64;                                // C: 16 x 16 dwords
+    for (int t = 4; t < 6; ++t) rows[t] = 16, bytes[t] = static_cast<int>(step_bytes);      // A: 16 rows
+    for (int t = 6; t < 8; ++t) rows[t] = static_cast<int>(step_bytes / 4), bytes[t] = 64;  // B: 16 dwords a row
   }
   template <int kTile>
   void zero() {
@@ -75,21 +154,44 @@ struct EmulatedTiles {
       }
     }
   }
+  // tdpbf16ps: for each dword i of A's row m, in order, C[m][n] += A[m][2i] * B[i][2n], then
+  // C[m][n] += A[m][2i + 1] * B[i][2n + 1], each product exact and each sum rounded to fp32, with bf16
+  // denormal inputs read as 0 and denormal results flushed to 0.
+  template <int kC, int kA, int kB>
+  void dpbf16ps() {
+    auto word = [](const uint8_t* bytes, int index) {
+      uint16_t bits;
+      std::memcpy(&bits, bytes + 2 * index, 2);
+      return (bits & 0x7F80u) == 0 ? 0.0f : bf16_value(bits);
+    };
+    auto flush = [](float value) { return std::fabs(value) < 1.17549435e-38f ? 0.0f * value : value; };
+    for (int m = 0; m < rows[kA]; ++m) {
+      for (int n = 0; n < bytes[kC] / 4; ++n) {
+        float sum;
+        std::memcpy(&sum, &tiles[kC][m][4 * n], 4);
+        for (int i = 0; i < bytes[kA] / 4; ++i) {
+          sum = flush(sum + word(tiles[kA][m], 2 * i) * word(tiles[kB][i], 2 * n));
+          sum = flush(sum + word(tiles[kA][m], 2 * i + 1) * word(tiles[kB][i], 2 * n + 1));
+        }
+        std::memcpy(&tiles[kC][m][4 * n], &sum, 4);
+      }
+    }
+  }
   void release() {}
 };
 
 #if defined(DYQ_AVX512_HAS_AMX)
 // The same operations on the AMX tile registers tmm0..tmm7.
 struct NativeTiles {
-  void configure(int64_t step) {
+  void configure(int64_t step_bytes) {
     struct alignas(64) {
       uint8_t palette = 1, start_row = 0, reserved[14] = {};
       uint16_t colsb[16] = {};
       uint8_t rows[16] = {};
     } config;
     for (int t = 0; t < 4; ++t) config.colsb[t] = 64, config.rows[t] = 16;
-    for (int t = 4; t < 6; ++t) config.colsb[t] = static_cast<uint16_t>(step), config.rows[t] = 16;
-    for (int t = 6; t < 8; ++t) config.colsb[t] = 64, config.rows[t] = static_cast<uint8_t>(step / 4);
+    for (int t = 4; t < 6; ++t) config.colsb[t] = static_cast<uint16_t>(step_bytes), config.rows[t] = 16;
+    for (int t = 6; t < 8; ++t) config.colsb[t] = 64, config.rows[t] = static_cast<uint8_t>(step_bytes / 4);
     _tile_loadconfig(&config);
   }
   // The intrinsics' macros paste their tile argument into the register name, so it must be a literal;
@@ -112,119 +214,192 @@ struct NativeTiles {
   void dpbusd() {
     asm volatile("{tdpbusd %%tmm%c2, %%tmm%c1, %%tmm%c0|tdpbusd tmm%c0, tmm%c1, tmm%c2}" ::"i"(kC), "i"(kA), "i"(kB));
   }
+  template <int kC, int kA, int kB>
+  void dpbf16ps() {
+    asm volatile("{tdpbf16ps %%tmm%c2, %%tmm%c1, %%tmm%c0|tdpbf16ps tmm%c0, tmm%c1, tmm%c2}" ::"i"(kC), "i"(kA),
+                 "i"(kB));
+  }
   void release() { _tile_release(); }
 };
 #endif
 
-// Activations as the tile loop reads them.
+// Activations as the tile loop reads them: rows padded to kAmxRowBlock with zeros, a pitch of whole groups
+// (zeros past k), columns in Kind::order. AmxInt8: u8 codes and each (row, group)'s z_x and s_x; AmxBf16:
+// bf16 bit patterns.
+template <typename Kind>
 struct AmxActivations {
-  int64_t rows = 0, pitch = 0, groups = 0;
-  std::vector<uint8_t> codes;  // [rows padded to kAmxRowBlock][pitch]
-  std::vector<float> zeros, scales;  // [m][groups]
+  int64_t rows = 0, pitch = 0, groups = 0;  // pitch in columns
+  std::vector<uint8_t> bytes;               // [rows][pitch * Kind::kElementBytes]
+  std::vector<float> zeros, scales;         // [m][groups], AmxInt8
+
+  const uint8_t* at(int64_t row, int64_t column) const {
+    return bytes.data() + (row * pitch + column) * Kind::kElementBytes;
+  }
+  int64_t stride() const { return pitch * Kind::kElementBytes; }
 };
 
-template <typename Element>
-AmxActivations quantize_amx_activations(const Element* x, int64_t m, int64_t k, int group_size, int act_bits) {
-  AmxActivations a;
+template <typename Kind, typename Element>
+AmxActivations<Kind> amx_activations(const Element* x, int64_t m, int64_t k, int group_size, int act_bits) {
+  AmxActivations<Kind> a;
   a.groups = group_count(k, group_size);
   a.pitch = a.groups * group_size;
   a.rows = (m + kAmxRowBlock - 1) / kAmxRowBlock * kAmxRowBlock;
-  a.codes.assign(a.rows * a.pitch, 0);
-  a.zeros.assign(m * a.groups, 0.0f);
-  a.scales.assign(m * a.groups, 0.0f);
+  a.bytes.assign(a.rows * a.stride(), 0);
+  if constexpr (Kind::kQuantized) {
+    a.zeros.assign(m * a.groups, 0.0f);
+    a.scales.assign(m * a.groups, 0.0f);
+  }
   parallel_for(0, m, 4, [&](int64_t row_begin, int64_t row_end) {
     std::vector<float> row(k);
+    std::vector<uint8_t> codes(a.pitch);
     std::vector<ActivationGroupParams> params(a.groups);
     for (int64_t r = row_begin; r < row_end; ++r) {
-      quantize_activation_row(x + r * k, k, group_size, act_bits, row.data(), a.codes.data() + r * a.pitch,
-                              params.data());
-      for (int64_t g = 0; g < a.groups; ++g) {
-        a.zeros[r * a.groups + g] = static_cast<float>(params[g].zero);
-        a.scales[r * a.groups + g] = params[g].scale;
+      uint8_t* out = a.bytes.data() + r * a.stride();
+      if constexpr (Kind::kQuantized) {
+        quantize_activation_row(x + r * k, k, group_size, act_bits, row.data(), codes.data(), params.data());
+        for (int64_t c = 0; c < k; ++c) out[Kind::order(c)] = codes[c];
+        for (int64_t g = 0; g < a.groups; ++g) {
+          a.zeros[r * a.groups + g] = static_cast<float>(params[g].zero);
+          a.scales[r * a.groups + g] = params[g].scale;
+        }
+      } else {
+        load_row_fp32(x + r * k, k, row.data());
+        for (int64_t c = 0; c < k; ++c) {
+          const uint16_t bits = bf16_bits(row[c]);
+          std::memcpy(out + 2 * Kind::order(c), &bits, 2);
+        }
       }
     }
   });
   return a;
 }
 
-// Weight rows [row_begin, row_begin + 32) in the VNNI order of the B tiles, [pitch / 4][32][4] s8 (rows past
-// n and columns past k are 0), and each group's sum q_w per output column, [groups][32].
-inline void pack_amx_panel(const uint8_t* qweight, int64_t n, int64_t k, int group_size, int64_t pitch,
-                           int64_t row_begin, int8_t* panel, float* weight_sums) {
-  const int64_t groups = pitch / group_size;
-  std::memset(panel, 0, pitch * kAmxPanelColumns);
-  std::fill(weight_sums, weight_sums + groups * kAmxPanelColumns, 0.0f);
-  for (int64_t j = 0; j < kAmxPanelColumns && row_begin + j < n; ++j) {
-    const uint8_t* row = qweight + (row_begin + j) * (k / 2);
-    for (int64_t c = 0; c < k; ++c) {
-      const int code = sign_extend_nibble(c % 2 == 0 ? row[c / 2] & 0xFu : row[c / 2] >> 4);
-      panel[(c / 4) * kAmxPanelColumns * 4 + j * 4 + c % 4] = static_cast<int8_t>(code);
-      weight_sums[(c / group_size) * kAmxPanelColumns + j] += static_cast<float>(code);
+// The panel layout in plain C++ (the emulation's unpacking; the native path uses the AVX-512 packers of
+// the same layout): the steps, each group's s_w and, for AmxInt8, sum q_w per output row.
+template <typename Kind>
+struct ScalarAmxPanel {
+  static constexpr int64_t kQuads = kAmxPanelDepth / kAmxQuadColumns;
+  static constexpr int64_t kGroups = kAmxPanelDepth / 32;  // at the smallest group size
+  std::vector<int32_t> steps = std::vector<int32_t>(kQuads * Kind::kStepsPerQuad * kAmxPanelColumns);
+  std::vector<float> scales = std::vector<float>(kGroups * kAmxPanelColumns);
+  std::vector<float> weight_sums = std::vector<float>(kGroups * kAmxPanelColumns);
+
+  // Columns [col_begin, col_begin + depth) of weight rows [row_begin, row_begin + 32); rows past n and
+  // columns past k are 0.
+  void pack(const uint8_t* qweight, const float* all_scales, int64_t n, int64_t k, int group_size, int64_t row_begin,
+            int64_t col_begin, int64_t depth) {
+    const int64_t groups = group_count(k, group_size);
+    const int64_t first_group = col_begin / group_size;
+    const int64_t panel_groups = group_count(depth, group_size);
+    std::fill(steps.begin(), steps.end(), 0);
+    std::fill(weight_sums.begin(), weight_sums.end(), 0.0f);
+    for (int64_t j = 0; j < kAmxPanelColumns; ++j) {
+      const int64_t output = row_begin + j;
+      if (output >= n) {
+        for (int64_t g = 0; g < panel_groups; ++g) scales[g * kAmxPanelColumns + j] = 0.0f;
+        continue;
+      }
+      const uint8_t* row = qweight + output * (k / 2);
+      for (int64_t quad = 0; quad * kAmxQuadColumns < depth; ++quad) {
+        for (int s = 0; s < Kind::kStepsPerQuad; ++s) {
+          const uint32_t dword = Kind::step_dword(row, k, col_begin / kAmxQuadColumns + quad, s);
+          std::memcpy(&steps[(quad * Kind::kStepsPerQuad + s) * kAmxPanelColumns + j], &dword, 4);
+        }
+      }
+      for (int64_t g = 0; g < panel_groups; ++g) {
+        scales[g * kAmxPanelColumns + j] = all_scales[output * groups + first_group + g];
+        if constexpr (Kind::kQuantized) {
+          const int64_t first = col_begin + g * group_size, last = std::min(first + group_size, k);
+          float sum = 0.0f;
+          for (int64_t c = first; c < last; ++c) sum += static_cast<float>(weight_code(row, c));
+          weight_sums[g * kAmxPanelColumns + j] = sum;
+        }
+      }
     }
   }
-}
+};
 
-// out = x W^T (+ bias) at a quantized act_bits through the tile loop. Threads split the panels; each
-// thread configures its own tiles.
-template <typename Tiles, typename Element>
+// out = x W^T (+ bias) through the tile loop: AmxInt8 at act_bits 2/4/8, AmxBf16 at 16. Panel is
+// ScalarAmxPanel<Kind> or a packer of the same layout. Threads split the panels of 32 output rows; each
+// configures its own tiles, unpacks each slice of its panel once, runs it against every activation row,
+// and keeps the running totals of its 32 outputs for all rows.
+template <typename Tiles, typename Kind, typename Panel, typename Element>
 void amx_gemm(const Element* x, const uint8_t* qweight, const float* scales, const Element* bias, int64_t m, int64_t n,
               int64_t k, int group_size, int act_bits, Element* out) {
-  const AmxActivations a = quantize_amx_activations(x, m, k, group_size, act_bits);
-  const int64_t step = amx_step(group_size);
+  const AmxActivations<Kind> a = amx_activations<Kind>(x, m, k, group_size, act_bits);
+  const int64_t step_bytes = std::min<int64_t>(kAmxMaxStepBytes, group_size * Kind::kElementBytes);
+  const int64_t step_columns = step_bytes / Kind::kElementBytes;
+  const int64_t columns_per_b_row = kAmxQuadColumns / Kind::kStepsPerQuad;
+  constexpr int64_t kBStride = kAmxPanelColumns * 4;  // bytes of one B row: a dword per output
   const int64_t panels = (n + kAmxPanelColumns - 1) / kAmxPanelColumns;
   parallel_for(0, panels, 1, [&](int64_t panel_begin, int64_t panel_end) {
     Tiles tiles;
-    tiles.configure(step);
-    std::vector<int8_t> panel(a.pitch * kAmxPanelColumns);
-    std::vector<float> weight_sums(a.groups * kAmxPanelColumns);
-    alignas(64) int32_t sums[kAmxRowBlock][kAmxPanelColumns];
-    std::vector<float> totals(kAmxRowBlock * kAmxPanelColumns);
+    tiles.configure(step_bytes);
+    Panel panel;
+    alignas(64) uint32_t sums[kAmxRowBlock][kAmxPanelColumns];
+    std::vector<float> totals(a.rows * kAmxPanelColumns);
     for (int64_t p = panel_begin; p < panel_end; ++p) {
       const int64_t weight_row = p * kAmxPanelColumns;
       const int64_t columns = std::min(kAmxPanelColumns, n - weight_row);
-      pack_amx_panel(qweight, n, k, group_size, a.pitch, weight_row, panel.data(), weight_sums.data());
-      for (int64_t row_begin = 0; row_begin < m; row_begin += kAmxRowBlock) {
-        const int64_t rows = std::min(kAmxRowBlock, m - row_begin);
-        std::fill(totals.begin(), totals.end(), 0.0f);
-        for (int64_t g = 0; g < a.groups; ++g) {
-          tiles.template zero<0>();
-          tiles.template zero<1>();
-          tiles.template zero<2>();
-          tiles.template zero<3>();
-          for (int64_t c = g * group_size; c < (g + 1) * group_size; c += step) {
-            const uint8_t* a_tile = a.codes.data() + row_begin * a.pitch + c;
-            const int8_t* b_tile = panel.data() + (c / 4) * kAmxPanelColumns * 4;
-            tiles.template load<4>(a_tile, a.pitch);
-            tiles.template load<5>(a_tile + kAmxTileRows * a.pitch, a.pitch);
-            tiles.template load<6>(b_tile, kAmxPanelColumns * 4);
-            tiles.template load<7>(b_tile + 64, kAmxPanelColumns * 4);
-            tiles.template dpbusd<0, 4, 6>();
-            tiles.template dpbusd<1, 4, 7>();
-            tiles.template dpbusd<2, 5, 6>();
-            tiles.template dpbusd<3, 5, 7>();
-          }
-          constexpr int64_t kStride = kAmxPanelColumns * 4;
-          tiles.template store<0>(&sums[0][0], kStride);
-          tiles.template store<1>(&sums[0][16], kStride);
-          tiles.template store<2>(&sums[16][0], kStride);
-          tiles.template store<3>(&sums[16][16], kStride);
-          const float* group_sums = weight_sums.data() + g * kAmxPanelColumns;
-          for (int64_t r = 0; r < rows; ++r) {
-            const float zero = a.zeros[(row_begin + r) * a.groups + g];
-            const float row_scale = a.scales[(row_begin + r) * a.groups + g];
-            for (int64_t j = 0; j < columns; ++j) {
-              // P = sum q_x q_w - z_x sum q_w, exact in fp32 (integers below 2^24).
-              const float partial = static_cast<float>(sums[r][j]) - zero * group_sums[j];
-              const float scale = row_scale * scales[(weight_row + j) * a.groups + g];
-              totals[r * kAmxPanelColumns + j] += partial * scale;
+      std::fill(totals.begin(), totals.end(), 0.0f);
+      for (int64_t slice = 0; slice < k; slice += kAmxPanelDepth) {
+        const int64_t depth = std::min(kAmxPanelDepth, k - slice);
+        panel.pack(qweight, scales, n, k, group_size, weight_row, slice, depth);
+        const auto* panel_bytes = reinterpret_cast<const uint8_t*>(panel.steps.data());
+        for (int64_t row_begin = 0; row_begin < m; row_begin += kAmxRowBlock) {
+          const int64_t rows = std::min(kAmxRowBlock, m - row_begin);
+          // A last group cut by k reads steps past `depth`: their activations are 0, so whatever a packer
+          // left there adds nothing.
+          for (int64_t first = 0; first < depth; first += group_size) {
+            tiles.template zero<0>();
+            tiles.template zero<1>();
+            tiles.template zero<2>();
+            tiles.template zero<3>();
+            for (int64_t c = first; c < first + group_size; c += step_columns) {
+              const uint8_t* a_tile = a.at(row_begin, slice + c);
+              const uint8_t* b_tile = panel_bytes + c / columns_per_b_row * kBStride;
+              tiles.template load<4>(a_tile, a.stride());
+              tiles.template load<5>(a_tile + kAmxTileRows * a.stride(), a.stride());
+              tiles.template load<6>(b_tile, kBStride);
+              tiles.template load<7>(b_tile + 64, kBStride);
+              Kind::template product<0, 4, 6>(tiles);
+              Kind::template product<1, 4, 7>(tiles);
+              Kind::template product<2, 5, 6>(tiles);
+              Kind::template product<3, 5, 7>(tiles);
+            }
+            tiles.template store<0>(&sums[0][0], kBStride);
+            tiles.template store<1>(&sums[0][16], kBStride);
+            tiles.template store<2>(&sums[16][0], kBStride);
+            tiles.template store<3>(&sums[16][16], kBStride);
+            const int64_t group = first / group_size;  // within the slice
+            const int64_t global_group = slice / group_size + group;
+            const float* weight_scales = &panel.scales[group * kAmxPanelColumns];
+            for (int64_t r = 0; r < rows; ++r) {
+              float* total = &totals[(row_begin + r) * kAmxPanelColumns];
+              if constexpr (Kind::kQuantized) {
+                // P = sum q_x q_w - z_x sum q_w, exact in fp32 (integers below 2^24).
+                const float zero = a.zeros[(row_begin + r) * a.groups + global_group];
+                const float row_scale = a.scales[(row_begin + r) * a.groups + global_group];
+                const float* weight_sums = &panel.weight_sums[group * kAmxPanelColumns];
+                for (int64_t j = 0; j < kAmxPanelColumns; ++j) {
+                  const float partial = static_cast<float>(static_cast<int32_t>(sums[r][j])) - zero * weight_sums[j];
+                  total[j] += partial * (row_scale * weight_scales[j]);
+                }
+              } else {
+                for (int64_t j = 0; j < kAmxPanelColumns; ++j) {
+                  float sum;
+                  std::memcpy(&sum, &sums[r][j], 4);
+                  total[j] += sum * weight_scales[j];
+                }
+              }
             }
           }
         }
-        for (int64_t r = 0; r < rows; ++r) {
-          for (int64_t j = 0; j < columns; ++j) {
-            const float bias_value = bias != nullptr ? to_float(bias[weight_row + j]) : 0.0f;
-            out[(row_begin + r) * n + weight_row + j] = from_float<Element>(totals[r * kAmxPanelColumns + j] + bias_value);
-          }
+      }
+      for (int64_t r = 0; r < m; ++r) {
+        for (int64_t j = 0; j < columns; ++j) {
+          const float bias_value = bias != nullptr ? to_float(bias[weight_row + j]) : 0.0f;
+          out[r * n + weight_row + j] = from_float<Element>(totals[r * kAmxPanelColumns + j] + bias_value);
         }
       }
     }

@@ -9,10 +9,16 @@ namespace dyq::cpu {
 
 void amx_emulated_gemm(const float* x, const uint8_t* qweight, const float* scales, const float* bias, int64_t m,
                        int64_t n, int64_t k, int group_size, int act_bits, float* out) {
-  if (act_bits != 2 && act_bits != 4 && act_bits != 8) {
-    throw std::invalid_argument("amx_emulated_gemm: act_bits must be 2, 4 or 8");
+  using namespace portable;
+  if (act_bits == 16) {
+    amx_gemm<EmulatedTiles, AmxBf16, ScalarAmxPanel<AmxBf16>>(x, qweight, scales, bias, m, n, k, group_size, act_bits,
+                                                              out);
+  } else if (act_bits == 2 || act_bits == 4 || act_bits == 8) {
+    amx_gemm<EmulatedTiles, AmxInt8, ScalarAmxPanel<AmxInt8>>(x, qweight, scales, bias, m, n, k, group_size, act_bits,
+                                                              out);
+  } else {
+    throw std::invalid_argument("amx_emulated_gemm: act_bits must be 2, 4, 8 or 16");
   }
-  portable::amx_gemm<portable::EmulatedTiles>(x, qweight, scales, bias, m, n, k, group_size, act_bits, out);
 }
 
 }  // namespace dyq::cpu

@@ -757,8 +757,13 @@ void run_panels(ActivationRow&& activation_row, const uint8_t* qweight, const fl
 constexpr int64_t kPanelMinRows = 8;
 
 #if defined(DYQ_AVX512_HAS_AMX)
-// From this many activation rows on, the AMX tiles (two A tiles of 16 rows; not measured: no AMX CPU at hand).
+// From this many activation rows on, the AMX tiles (two A tiles of 16 rows), unpacking the weights with the
+// panel packers above (gemm/gemm_cpu_amx.h).
 constexpr int64_t kAmxMinRows = 16;
+static_assert(kPanelColumns == kAmxPanelColumns && kPanelDepth == kAmxPanelDepth && kQuadColumns == kAmxQuadColumns,
+              "the AMX tile loop reads the panels' layout");
+static_assert(VnniPanel::kSteps == AmxInt8::kStepsPerQuad && Bf16Panel::kSteps == AmxBf16::kStepsPerQuad,
+              "the AMX tile loop reads the panels' layout");
 #endif
 
 template <int kBits, typename Element>
@@ -767,7 +772,7 @@ void gemm_typed(const Element* x, const uint8_t* qweight, const float* scales, c
   if constexpr (ActivationTraits<kBits>::kQuantized) {
 #if defined(DYQ_AVX512_HAS_AMX)
     if (m >= kAmxMinRows) {
-      amx_gemm<NativeTiles>(x, qweight, scales, bias, m, n, k, group_size, kBits, out);
+      amx_gemm<NativeTiles, AmxInt8, WeightPanel<VnniPanel>>(x, qweight, scales, bias, m, n, k, group_size, kBits, out);
       return;
     }
 #endif
@@ -785,6 +790,12 @@ void gemm_typed(const Element* x, const uint8_t* qweight, const float* scales, c
           decode_int_kernel<decltype(tile_rows)::value, kBits == 8>(weight_row, scales_row, k, group_size, rows, sums);
         });
   } else {
+#if defined(DYQ_AVX512_HAS_AMX)
+    if (m >= kAmxMinRows) {
+      amx_gemm<NativeTiles, AmxBf16, WeightPanel<Bf16Panel>>(x, qweight, scales, bias, m, n, k, group_size, kBits, out);
+      return;
+    }
+#endif
 #if defined(DYQ_AVX512_HAS_BF16)
     if (m >= kPanelMinRows) {
       const AlignedVector<uint16_t> activations = bf16_activations(x, m, k);
@@ -825,7 +836,7 @@ void gemm_typed(const Element* x, const uint8_t* qweight, const float* scales, c
 inline const char* gemm_kernel(int64_t m, int64_t, int, int act_bits) {
   const bool panel = m >= kPanelMinRows;
 #if defined(DYQ_AVX512_HAS_AMX)
-  if (act_bits != kFallbackBits && m >= kAmxMinRows) return DYQ_ISA_NAME "/tiles-amx-int8";
+  if (m >= kAmxMinRows) return act_bits != kFallbackBits ? DYQ_ISA_NAME "/tiles-amx-int8" : DYQ_ISA_NAME "/tiles-amx-bf16";
 #endif
   if (act_bits != kFallbackBits) return panel ? DYQ_ISA_NAME "/panel-vnni" : DYQ_ISA_NAME "/rows-vnni";
 #if defined(DYQ_AVX512_HAS_BF16)

@@ -2,12 +2,15 @@
 // operations on every CPU, and through the AMX instructions where the CPU has them.
 #include <gtest/gtest.h>
 
+#include <algorithm>
 #include <cmath>
+#include <cstring>
 #include <string>
 #include <tuple>
 #include <vector>
 
 #include "cpu/cpu_isa.h"
+#include "gemm/gemm_cpu_amx.h"
 #include "gemm/gemm_cpu_amx_emulated.h"
 #include "naive_reference.h"
 
@@ -28,14 +31,23 @@ void expect_matches_reference(const AmxProblem& p, int act_bits, Gemm&& gemm, co
   const auto ref = naive::gemm(x, quantized, bias, p.m, p.n, p.k, p.group_size, act_bits);
   std::vector<float> out(p.m * p.n, -12345.0f);
   gemm(x.data(), qweight.data(), quantized.scales.data(), bias.data(), out.data());
+  // fp32 sums; at act_bits 16, x rounded to bf16 first (docs/numerics.md, section 3): up to 2^-8 of each term.
+  const double relative = 1e-5 + (act_bits == 16 ? std::ldexp(1.0, -8) : 0.0);
+  double worst = 0.0;
   for (size_t i = 0; i < out.size(); ++i) {
-    ASSERT_NEAR(out[i], ref.value[i], 1e-6 + 1e-5 * ref.magnitude[i]) << what << " element " << i;
+    ASSERT_NEAR(out[i], ref.value[i], 1e-6 + relative * ref.magnitude[i]) << what << " element " << i;
+    worst = std::max(worst, std::fabs(out[i] - ref.value[i]) / (1e-6 + ref.magnitude[i]));
+  }
+  if (act_bits == 16) {
+    // Rounding x to bf16 must show: an fp32 loop that skipped it would be far more exact than 2^-8.
+    EXPECT_GT(worst, 1e-5) << what << ": x was not rounded to bf16";
   }
 }
 
-// m below, at and above the 32 rows of a pass; n not a multiple of a 32-column panel; k with a remainder group.
+// m below, at and above the 32 rows of a pass; n not a multiple of a 32-column panel; k with a remainder group,
+// and k over one or more 256-column slices of a panel.
 const AmxProblem kProblems[] = {{1, 40, 256, 128}, {17, 33, 192, 64}, {32, 64, 128, 32}, {45, 70, 200, 64},
-                                {70, 31, 352, 32}};
+                                {70, 31, 352, 32}, {33, 40, 600, 128}};
 
 class AmxTileLoopTest : public ::testing::TestWithParam<int> {};
 
@@ -54,7 +66,7 @@ TEST_P(AmxTileLoopTest, AmxTilesMatchTheNaiveReference) {
   for (const auto* path : dyq::cpu::runnable_cpu_paths()) {
     if (std::string(path->name) == "amx") amx = path;
   }
-  if (amx == nullptr) GTEST_SKIP() << "this CPU has no AMX-INT8 (or the OS did not grant the tile state)";
+  if (amx == nullptr) GTEST_SKIP() << "this CPU has no AMX-INT8 and AMX-BF16 (or the OS did not grant the tile state)";
   const int act_bits = GetParam();
   for (const AmxProblem& p : kProblems) {
     expect_matches_reference(p, act_bits, [&](const float* x, const uint8_t* qweight, const float* scales,
@@ -65,14 +77,40 @@ TEST_P(AmxTileLoopTest, AmxTilesMatchTheNaiveReference) {
   }
 }
 
-INSTANTIATE_TEST_SUITE_P(QuantizedWidths, AmxTileLoopTest, ::testing::Values(2, 4, 8));
+// 2, 4 and 8 through AMX-INT8, 16 (the fallback) through AMX-BF16.
+INSTANTIATE_TEST_SUITE_P(EveryWidth, AmxTileLoopTest, ::testing::Values(2, 4, 8, 16));
 
-TEST(AmxTileLoop, RejectsTheFallbackWidth) {
+TEST(AmxTileLoop, RejectsAnUnregisteredWidth) {
   std::vector<float> x(2 * 64), scales(2), out(4);
   std::vector<uint8_t> qweight(2 * 32);
-  EXPECT_THROW(dyq::cpu::amx_emulated_gemm(x.data(), qweight.data(), scales.data(), nullptr, 2, 2, 64, 64, 16,
+  EXPECT_THROW(dyq::cpu::amx_emulated_gemm(x.data(), qweight.data(), scales.data(), nullptr, 2, 2, 64, 64, 3,
                                            out.data()),
                std::invalid_argument);
+}
+
+// tdpbf16ps as the instruction defines it: bf16 denormal inputs read as 0, fp32 denormal results flushed.
+TEST(AmxTileLoop, EmulatedBf16ProductFlushesDenormals) {
+  dyq::cpu::portable::EmulatedTiles tiles;
+  tiles.configure(64);
+  for (int t = 0; t < 8; ++t) std::memset(tiles.tiles[t], 0, sizeof(tiles.tiles[t]));
+  auto put = [&](int tile, int row, int word, float value) {
+    const uint16_t bits = dyq::cpu::portable::bf16_bits(value);
+    std::memcpy(&tiles.tiles[tile][row][2 * word], &bits, 2);
+  };
+  put(4, 0, 0, 3.0f);      // A[0] dword 0: (3, 2^-130: a bf16 denormal)
+  put(4, 0, 1, 0x1p-130f);
+  put(6, 0, 0, 5.0f);      // B row 0, output 0: (5, 1)
+  put(6, 0, 1, 1.0f);
+  put(4, 1, 0, 0x1p-70f);  // A[1]: 2^-70 * 2^-70 = 2^-140, an fp32 denormal
+  put(6, 0, 2, 0x1p-70f);  // B row 0, output 1
+  put(4, 1, 2, 0x1p-70f);  // A[1] dword 1 times B row 1, output 1
+  put(6, 1, 2, 0x1p-70f);
+  tiles.dpbf16ps<0, 4, 6>();
+  float c00, c11;
+  std::memcpy(&c00, &tiles.tiles[0][0][0], 4);
+  std::memcpy(&c11, &tiles.tiles[0][1][4], 4);
+  EXPECT_EQ(c00, 15.0f);  // 3 * 5 + (denormal, read as 0) * 1
+  EXPECT_EQ(c11, 0.0f);   // 2^-140 + 2^-140 are denormal sums, flushed
 }
 
 }  // namespace
