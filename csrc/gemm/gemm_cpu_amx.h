@@ -37,6 +37,7 @@
 #include <cmath>
 #include <cstdint>
 #include <cstring>
+#include <type_traits>
 #include <vector>
 
 #include "activation/act_quant_cpu_row.h"
@@ -80,7 +81,10 @@ struct AmxInt8 {
   static constexpr int64_t kStepsPerQuad = 2;  // B rows per 8 columns
   static constexpr bool kQuantized = true;     // u8 codes with z_x and s_x, and sum q_w per group
   // Position of column c within its 8 columns in A and in the panel: the even columns, then the odd ones.
-  static int64_t order(int64_t c) { return c / 8 * 8 + (c % 2) * 4 + c % 8 / 2; }
+  // The A bytes of 8 columns from their codes: the even columns, then the odd ones.
+  static void quad_bytes(const uint8_t* codes, uint8_t* out) {
+    for (int i = 0; i < 4; ++i) out[i] = codes[2 * i], out[4 + i] = codes[2 * i + 1];
+  }
   // The dword of step s of quad q for one output row (packed weights `row`; columns past k are 0).
   static uint32_t step_dword(const uint8_t* row, int64_t k, int64_t quad, int s) {
     uint32_t dword = 0;
@@ -101,7 +105,13 @@ struct AmxBf16 {
   static constexpr int64_t kElementBytes = 2;
   static constexpr int64_t kStepsPerQuad = 4;
   static constexpr bool kQuantized = false;
-  static int64_t order(int64_t c) { return c; }
+  // The A bytes of 8 columns: their bf16 bit patterns, in column order.
+  static void quad_bytes(const float* values, uint8_t* out) {
+    for (int i = 0; i < 8; ++i) {
+      const uint16_t bits = bf16_bits(values[i]);
+      std::memcpy(out + 2 * i, &bits, 2);
+    }
+  }
   static uint32_t step_dword(const uint8_t* row, int64_t k, int64_t quad, int s) {
     uint32_t dword = 0;
     for (int b = 0; b < 2; ++b) {
@@ -223,50 +233,85 @@ struct NativeTiles {
 };
 #endif
 
-// Activations as the tile loop reads them: rows padded to kAmxRowBlock with zeros, a pitch of whole groups
-// (zeros past k), columns in Kind::order. AmxInt8: u8 codes and each (row, group)'s z_x and s_x; AmxBf16:
-// bf16 bit patterns.
+// Activations as the tile loop reads them, in the order it loads the A tiles: slice by slice of
+// kAmxPanelDepth columns, within a slice block by block of kAmxRowBlock rows (the last padded with zero
+// rows), within a block step by step, the step's bytes of the block's 32 rows. So a tile load reads 1 KiB
+// in one run (rows k bytes apart would fall into the same few sets of the L1 cache at k = 4096), and a
+// panel's pass over the activations reads them in one sequence, which the prefetchers follow. Every 8
+// columns are laid out by Kind::quad_bytes, zero past k up to whole groups. AmxInt8: u8 codes and each
+// (row, group)'s z_x and s_x; AmxBf16: bf16 bit patterns.
 template <typename Kind>
 struct AmxActivations {
-  int64_t rows = 0, pitch = 0, groups = 0;  // pitch in columns
-  std::vector<uint8_t> bytes;               // [rows][pitch * Kind::kElementBytes]
-  std::vector<float> zeros, scales;         // [m][groups], AmxInt8
+  int64_t rows = 0, groups = 0, step_bytes = 0, steps = 0;  // steps: of all the padded columns
+  std::vector<uint8_t> bytes;
+  std::vector<float> zeros, scales;  // [m][groups], AmxInt8
 
-  const uint8_t* at(int64_t row, int64_t column) const {
-    return bytes.data() + (row * pitch + column) * Kind::kElementBytes;
+  int64_t step_columns() const { return step_bytes / Kind::kElementBytes; }
+  // The byte of (row, column), column a multiple of 8.
+  int64_t offset(int64_t row, int64_t column) const {
+    const int64_t steps_per_slice = kAmxPanelDepth / step_columns();
+    const int64_t slice = column / kAmxPanelDepth;
+    const int64_t slice_steps = std::min(steps_per_slice, steps - slice * steps_per_slice);
+    const int64_t step = column % kAmxPanelDepth / step_columns();
+    const int64_t line = slice * steps_per_slice * rows + (row / kAmxRowBlock * slice_steps + step) * kAmxRowBlock +
+                         row % kAmxRowBlock;
+    return line * step_bytes + column % step_columns() * Kind::kElementBytes;
   }
-  int64_t stride() const { return pitch * Kind::kElementBytes; }
+  // The A tile of rows [row_begin, row_begin + 16) (row_begin a multiple of 16) at `column` (a multiple
+  // of step_columns()); its rows are stride() bytes apart.
+  const uint8_t* tile(int64_t row_begin, int64_t column) const { return bytes.data() + offset(row_begin, column); }
+  int64_t stride() const { return step_bytes; }
 };
+
+// A step: 64 bytes of A (64 columns of u8 codes, 32 of bf16), or the group's bytes where the group is
+// smaller, so that a group is a whole number of steps.
+template <typename Kind>
+int64_t amx_step_bytes(int group_size) {
+  return std::min<int64_t>(kAmxMaxStepBytes, group_size * Kind::kElementBytes);
+}
 
 template <typename Kind, typename Element>
 AmxActivations<Kind> amx_activations(const Element* x, int64_t m, int64_t k, int group_size, int act_bits) {
   AmxActivations<Kind> a;
   a.groups = group_count(k, group_size);
-  a.pitch = a.groups * group_size;
+  a.step_bytes = amx_step_bytes<Kind>(group_size);
+  a.steps = a.groups * group_size / a.step_columns();
   a.rows = (m + kAmxRowBlock - 1) / kAmxRowBlock * kAmxRowBlock;
-  a.bytes.assign(a.rows * a.stride(), 0);
+  a.bytes.assign(a.rows * a.steps * a.step_bytes, 0);
   if constexpr (Kind::kQuantized) {
     a.zeros.assign(m * a.groups, 0.0f);
     a.scales.assign(m * a.groups, 0.0f);
   }
+  const int64_t padded = a.groups * group_size;  // columns, zero past k
+  const int64_t step_columns = a.step_columns();
   parallel_for(0, m, 4, [&](int64_t row_begin, int64_t row_end) {
-    std::vector<float> row(k);
-    std::vector<uint8_t> codes(a.pitch);
+    std::vector<float> row(padded, 0.0f);
+    std::vector<uint8_t> codes(padded, 0);
     std::vector<ActivationGroupParams> params(a.groups);
     for (int64_t r = row_begin; r < row_end; ++r) {
-      uint8_t* out = a.bytes.data() + r * a.stride();
       if constexpr (Kind::kQuantized) {
         quantize_activation_row(x + r * k, k, group_size, act_bits, row.data(), codes.data(), params.data());
-        for (int64_t c = 0; c < k; ++c) out[Kind::order(c)] = codes[c];
         for (int64_t g = 0; g < a.groups; ++g) {
           a.zeros[r * a.groups + g] = static_cast<float>(params[g].zero);
           a.scales[r * a.groups + g] = params[g].scale;
         }
       } else {
         load_row_fp32(x + r * k, k, row.data());
-        for (int64_t c = 0; c < k; ++c) {
-          const uint16_t bits = bf16_bits(row[c]);
-          std::memcpy(out + 2 * Kind::order(c), &bits, 2);
+      }
+      // Step by step into the row's line of each step's tile (one offset per slice: the steps of a
+      // slice's block are a line of 32 rows apart).
+      const int64_t line_bytes = kAmxRowBlock * a.step_bytes;
+      for (int64_t slice = 0; slice < padded; slice += kAmxPanelDepth) {
+        uint8_t* line = a.bytes.data() + a.offset(r, slice);
+        const int64_t slice_end = std::min(padded, slice + kAmxPanelDepth);
+        for (int64_t step = slice; step < slice_end; step += step_columns, line += line_bytes) {
+          for (int64_t c = 0; c < step_columns; c += kAmxQuadColumns) {
+            if constexpr (Kind::kQuantized) {
+              Kind::quad_bytes(codes.data() + step + c, line + c);
+            } else {
+              Kind::quad_bytes(row.data() + step + c, line + 2 * c);
+            }
+          }
         }
       }
     }
@@ -319,6 +364,30 @@ struct ScalarAmxPanel {
   }
 };
 
+// A panel's 32 outputs of one row. Rows of the output are n elements apart, so a panel writes 128 bytes
+// to each of m rows: where it can, it writes them past the caches (whole lines, without reading them in
+// first), which made the writes a sixth of the GEMM's time at m = 256.
+template <typename Element>
+void store_output_row(const float* values, int64_t columns, Element* out) {
+#if defined(DYQ_AVX512_HAS_AMX)
+  if constexpr (std::is_same_v<Element, float>) {
+    if (columns == kAmxPanelColumns && reinterpret_cast<uintptr_t>(out) % 64 == 0) {
+      _mm512_stream_ps(out, _mm512_loadu_ps(values));
+      _mm512_stream_ps(out + 16, _mm512_loadu_ps(values + 16));
+      return;
+    }
+  }
+#endif
+  for (int64_t j = 0; j < columns; ++j) out[j] = from_float<Element>(values[j]);
+}
+
+// Orders the stores past the caches before the caller reads the output.
+inline void finish_output_stores() {
+#if defined(DYQ_AVX512_HAS_AMX)
+  _mm_sfence();
+#endif
+}
+
 // out = x W^T (+ bias) through the tile loop: AmxInt8 at act_bits 2/4/8, AmxBf16 at 16. Panel is
 // ScalarAmxPanel<Kind> or a packer of the same layout. Threads split the panels of 32 output rows; each
 // configures its own tiles, unpacks each slice of its panel once, runs it against every activation row,
@@ -327,8 +396,8 @@ template <typename Tiles, typename Kind, typename Panel, typename Element>
 void amx_gemm(const Element* x, const uint8_t* qweight, const float* scales, const Element* bias, int64_t m, int64_t n,
               int64_t k, int group_size, int act_bits, Element* out) {
   const AmxActivations<Kind> a = amx_activations<Kind>(x, m, k, group_size, act_bits);
-  const int64_t step_bytes = std::min<int64_t>(kAmxMaxStepBytes, group_size * Kind::kElementBytes);
-  const int64_t step_columns = step_bytes / Kind::kElementBytes;
+  const int64_t step_bytes = a.step_bytes;
+  const int64_t step_columns = a.step_columns();
   const int64_t columns_per_b_row = kAmxQuadColumns / Kind::kStepsPerQuad;
   constexpr int64_t kBStride = kAmxPanelColumns * 4;  // bytes of one B row: a dword per output
   const int64_t panels = (n + kAmxPanelColumns - 1) / kAmxPanelColumns;
@@ -336,8 +405,43 @@ void amx_gemm(const Element* x, const uint8_t* qweight, const float* scales, con
     Tiles tiles;
     tiles.configure(step_bytes);
     Panel panel;
-    alignas(64) uint32_t sums[kAmxRowBlock][kAmxPanelColumns];
+    // The C tiles of a group go to one of two buffers, and the previous group's are scaled into the totals
+    // after the next group's tile products are issued: the AMX unit works through those while the vector
+    // units scale, which would otherwise take turns (the scaling costs about as much as the products).
+    alignas(64) uint32_t sums[2][kAmxRowBlock][kAmxPanelColumns];
+    struct Pending {
+      int64_t row_begin = -1, rows = 0, group = 0;  // group: within the slice
+    } pending;
     std::vector<float> totals(a.rows * kAmxPanelColumns);
+    auto scale_into_totals = [&](const Pending& job, const uint32_t (*group_sums)[kAmxPanelColumns], int64_t slice) {
+      const int64_t global_group = slice / group_size + job.group;
+      // The group's factors of the 32 outputs, copied so that they stay in registers over the rows (the
+      // stores into the totals could alias the panel's arrays otherwise).
+      float weight_scales[kAmxPanelColumns], weight_sums[kAmxPanelColumns];
+      std::memcpy(weight_scales, &panel.scales[job.group * kAmxPanelColumns], sizeof(weight_scales));
+      if constexpr (Kind::kQuantized) {
+        std::memcpy(weight_sums, &panel.weight_sums[job.group * kAmxPanelColumns], sizeof(weight_sums));
+      }
+      for (int64_t r = 0; r < job.rows; ++r) {
+        const int64_t row = job.row_begin + r;
+        float* total = &totals[row * kAmxPanelColumns];
+        if constexpr (Kind::kQuantized) {
+          // P = sum q_x q_w - z_x sum q_w, exact in fp32 (integers below 2^24).
+          const float zero = a.zeros[row * a.groups + global_group];
+          const float row_scale = a.scales[row * a.groups + global_group];
+          for (int64_t j = 0; j < kAmxPanelColumns; ++j) {
+            const float partial = static_cast<float>(static_cast<int32_t>(group_sums[r][j])) - zero * weight_sums[j];
+            total[j] += partial * (row_scale * weight_scales[j]);
+          }
+        } else {
+          for (int64_t j = 0; j < kAmxPanelColumns; ++j) {
+            float sum;
+            std::memcpy(&sum, &group_sums[r][j], 4);
+            total[j] += sum * weight_scales[j];
+          }
+        }
+      }
+    };
     for (int64_t p = panel_begin; p < panel_end; ++p) {
       const int64_t weight_row = p * kAmxPanelColumns;
       const int64_t columns = std::min(kAmxPanelColumns, n - weight_row);
@@ -346,8 +450,11 @@ void amx_gemm(const Element* x, const uint8_t* qweight, const float* scales, con
         const int64_t depth = std::min(kAmxPanelDepth, k - slice);
         panel.pack(qweight, scales, n, k, group_size, weight_row, slice, depth);
         const auto* panel_bytes = reinterpret_cast<const uint8_t*>(panel.steps.data());
+        int buffer = 0;
         for (int64_t row_begin = 0; row_begin < m; row_begin += kAmxRowBlock) {
-          const int64_t rows = std::min(kAmxRowBlock, m - row_begin);
+          // The block's steps in this slice, one after another (AmxActivations).
+          const uint8_t* a_steps = a.tile(row_begin, slice);
+          const int64_t a_step_bytes = kAmxRowBlock * step_bytes;
           // A last group cut by k reads steps past `depth`: their activations are 0, so whatever a packer
           // left there adds nothing.
           for (int64_t first = 0; first < depth; first += group_size) {
@@ -355,8 +462,8 @@ void amx_gemm(const Element* x, const uint8_t* qweight, const float* scales, con
             tiles.template zero<1>();
             tiles.template zero<2>();
             tiles.template zero<3>();
-            for (int64_t c = first; c < first + group_size; c += step_columns) {
-              const uint8_t* a_tile = a.at(row_begin, slice + c);
+            const uint8_t* a_tile = a_steps + first / step_columns * a_step_bytes;
+            for (int64_t c = first; c < first + group_size; c += step_columns, a_tile += a_step_bytes) {
               const uint8_t* b_tile = panel_bytes + c / columns_per_b_row * kBStride;
               tiles.template load<4>(a_tile, a.stride());
               tiles.template load<5>(a_tile + kAmxTileRows * a.stride(), a.stride());
@@ -367,42 +474,28 @@ void amx_gemm(const Element* x, const uint8_t* qweight, const float* scales, con
               Kind::template product<2, 5, 6>(tiles);
               Kind::template product<3, 5, 7>(tiles);
             }
-            tiles.template store<0>(&sums[0][0], kBStride);
-            tiles.template store<1>(&sums[0][16], kBStride);
-            tiles.template store<2>(&sums[16][0], kBStride);
-            tiles.template store<3>(&sums[16][16], kBStride);
-            const int64_t group = first / group_size;  // within the slice
-            const int64_t global_group = slice / group_size + group;
-            const float* weight_scales = &panel.scales[group * kAmxPanelColumns];
-            for (int64_t r = 0; r < rows; ++r) {
-              float* total = &totals[(row_begin + r) * kAmxPanelColumns];
-              if constexpr (Kind::kQuantized) {
-                // P = sum q_x q_w - z_x sum q_w, exact in fp32 (integers below 2^24).
-                const float zero = a.zeros[(row_begin + r) * a.groups + global_group];
-                const float row_scale = a.scales[(row_begin + r) * a.groups + global_group];
-                const float* weight_sums = &panel.weight_sums[group * kAmxPanelColumns];
-                for (int64_t j = 0; j < kAmxPanelColumns; ++j) {
-                  const float partial = static_cast<float>(static_cast<int32_t>(sums[r][j])) - zero * weight_sums[j];
-                  total[j] += partial * (row_scale * weight_scales[j]);
-                }
-              } else {
-                for (int64_t j = 0; j < kAmxPanelColumns; ++j) {
-                  float sum;
-                  std::memcpy(&sum, &sums[r][j], 4);
-                  total[j] += sum * weight_scales[j];
-                }
-              }
-            }
+            if (pending.row_begin >= 0) scale_into_totals(pending, sums[buffer ^ 1], slice);
+            tiles.template store<0>(&sums[buffer][0][0], kBStride);
+            tiles.template store<1>(&sums[buffer][0][16], kBStride);
+            tiles.template store<2>(&sums[buffer][16][0], kBStride);
+            tiles.template store<3>(&sums[buffer][16][16], kBStride);
+            pending = {row_begin, std::min(kAmxRowBlock, m - row_begin), first / group_size};
+            buffer ^= 1;
           }
         }
+        // The slice's last group, before the next slice is packed over its scales.
+        scale_into_totals(pending, sums[buffer ^ 1], slice);
+        pending = {};
       }
       for (int64_t r = 0; r < m; ++r) {
-        for (int64_t j = 0; j < columns; ++j) {
-          const float bias_value = bias != nullptr ? to_float(bias[weight_row + j]) : 0.0f;
-          out[r * n + weight_row + j] = from_float<Element>(totals[r * kAmxPanelColumns + j] + bias_value);
+        float* total = &totals[r * kAmxPanelColumns];
+        if (bias != nullptr) {
+          for (int64_t j = 0; j < columns; ++j) total[j] += to_float(bias[weight_row + j]);
         }
+        store_output_row(total, columns, out + r * n + weight_row);
       }
     }
+    finish_output_stores();
     tiles.release();
   });
 }

@@ -651,6 +651,12 @@ struct WeightPanel {
           const int64_t row = row_begin + 16 * half + i;
           rows[i] = row < n ? _mm512_maskz_loadu_epi8(byte_mask, qweight + row * (k / 2) + column / 2)
                             : _mm512_setzero_si512();
+          // The same rows' bytes of the next slice: 32 rows 2 KiB or more apart, each read 128 bytes at a
+          // time, are streams the hardware prefetchers do not follow.
+          if (row < n && column + kPanelDepth < k) {
+            _mm_prefetch(reinterpret_cast<const char*>(qweight + row * (k / 2) + (column + kPanelDepth) / 2),
+                         _MM_HINT_T0);
+          }
         }
         transpose_16x16_dwords(rows);
         for (int64_t q = 0; q < 16 && block * 16 + q < quads; ++q) {
