@@ -3,7 +3,7 @@ import copy
 
 import pytest
 import torch
-from helpers import bf16_fallback
+from helpers import assert_gemm_close, bf16_fallback
 
 import dyq
 from dyq import reference
@@ -215,8 +215,9 @@ def test_min_act_bits_keeps_the_named_layers_at_or_above_their_floor():
     for bits in (2, 4, 8, 16):
         flag.bits = bits
         assert mlp.up_proj.precision == max(bits, 8) and attn.q_proj.precision == bits
-        expected = reference.gemm(x, mlp.up_proj.qweight, mlp.up_proj.scales, 32, max(bits, 8)).float()
-        torch.testing.assert_close(mlp.up_proj(x), expected, rtol=1e-4, atol=1e-4)
+        # At flag 16 the layer runs the W4A16 fallback, whose bf16 dot products (where the CPU has them)
+        # round x to bf16: that is assert_gemm_close's documented tolerance, not 1e-4.
+        assert_gemm_close(mlp.up_proj(x), x, mlp.up_proj.qweight, mlp.up_proj.scales, 32, max(bits, 8))
         q_expected = reference.gemm(x, attn.q_proj.qweight, attn.q_proj.scales, 32, bits).float()
         if bits != 16:  # the W4A16 fallback may round x to bf16 (docs/numerics.md)
             torch.testing.assert_close(attn.q_proj(x), q_expected, rtol=1e-4, atol=1e-4)

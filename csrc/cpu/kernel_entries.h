@@ -106,22 +106,22 @@ void hadamard_transform(const void* x, ScalarType dtype, const float* signs, con
 template <typename Element, typename Compute>
 bool recompute_overflowed_rows(const Element* x, const float* scales, const Element* bias, int64_t m, int64_t n,
                                int64_t k, int group_size, Element* out, Compute&& compute) {
-  // The largest magnitude's bit pattern, in chunks without an early exit inside, which the compiler
-  // vectorizes (NaN and inf have the largest patterns): a scalar scan of every output cost about a tenth
-  // of an AMX GEMM of 256 rows.
+  // Whether any exponent is all ones (inf or NaN), in chunks without an early exit inside, which the
+  // compiler vectorizes even at the baseline ISA: a scalar scan of every output cost about a tenth of an
+  // AMX GEMM of 256 rows.
   auto finite = [](const auto* values, int64_t count) {
     constexpr int64_t kChunk = 256;
-    constexpr uint32_t kLargestFinite = 0x7F7FFFFFu;  // FLT_MAX
+    constexpr uint32_t kExponent = 0x7F800000u;  // all ones for inf and NaN only
     for (int64_t begin = 0; begin < count; begin += kChunk) {
       const int64_t end = std::min(count, begin + kChunk);
-      uint32_t largest = 0;
+      uint32_t exponent_all_ones = 0;
       for (int64_t i = begin; i < end; ++i) {
         const float value = to_float(values[i]);
         uint32_t bits;
         std::memcpy(&bits, &value, sizeof(bits));
-        largest = std::max(largest, bits & 0x7FFFFFFFu);
+        exponent_all_ones |= (bits & kExponent) == kExponent ? 1u : 0u;
       }
-      if (largest > kLargestFinite) return false;
+      if (exponent_all_ones != 0) return false;
     }
     return true;
   };
@@ -159,6 +159,10 @@ bool recompute_overflowed_rows(const Element* x, const float* scales, const Elem
 bool gemm(const void* x, ScalarType dtype, const uint8_t* qweight, const float* scales, const void* bias, int64_t m,
           int64_t n, int64_t k, int group_size, int act_bits, void* out) {
   if (m == 0 || n == 0) return true;
+  // Below about a million multiply-adds (a 256 x 256 layer at 16 rows) one thread finishes sooner than two:
+  // the second thread's share is smaller than the cost of handing it over.
+  constexpr int64_t kMinParallelWork = int64_t{1} << 20;
+  const SerialScope serial(m * n * k < kMinParallelWork);
   bool in_range = true;
   dispatch_element_type(dtype, [&](auto element) {
     using Element = decltype(element);

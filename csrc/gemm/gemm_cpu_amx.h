@@ -37,7 +37,6 @@
 #include <cmath>
 #include <cstdint>
 #include <cstring>
-#include <type_traits>
 #include <vector>
 
 #include "activation/act_quant_cpu_row.h"
@@ -364,30 +363,6 @@ struct ScalarAmxPanel {
   }
 };
 
-// A panel's 32 outputs of one row. Rows of the output are n elements apart, so a panel writes 128 bytes
-// to each of m rows: where it can, it writes them past the caches (whole lines, without reading them in
-// first), which made the writes a sixth of the GEMM's time at m = 256.
-template <typename Element>
-void store_output_row(const float* values, int64_t columns, Element* out) {
-#if defined(DYQ_AVX512_HAS_AMX)
-  if constexpr (std::is_same_v<Element, float>) {
-    if (columns == kAmxPanelColumns && reinterpret_cast<uintptr_t>(out) % 64 == 0) {
-      _mm512_stream_ps(out, _mm512_loadu_ps(values));
-      _mm512_stream_ps(out + 16, _mm512_loadu_ps(values + 16));
-      return;
-    }
-  }
-#endif
-  for (int64_t j = 0; j < columns; ++j) out[j] = from_float<Element>(values[j]);
-}
-
-// Orders the stores past the caches before the caller reads the output.
-inline void finish_output_stores() {
-#if defined(DYQ_AVX512_HAS_AMX)
-  _mm_sfence();
-#endif
-}
-
 // out = x W^T (+ bias) through the tile loop: AmxInt8 at act_bits 2/4/8, AmxBf16 at 16. Panel is
 // ScalarAmxPanel<Kind> or a packer of the same layout. Threads split the panels of 32 output rows; each
 // configures its own tiles, unpacks each slice of its panel once, runs it against every activation row,
@@ -492,10 +467,9 @@ void amx_gemm(const Element* x, const uint8_t* qweight, const float* scales, con
         if (bias != nullptr) {
           for (int64_t j = 0; j < columns; ++j) total[j] += to_float(bias[weight_row + j]);
         }
-        store_output_row(total, columns, out + r * n + weight_row);
+        for (int64_t j = 0; j < columns; ++j) out[r * n + weight_row + j] = from_float<Element>(total[j]);
       }
     }
-    finish_output_stores();
     tiles.release();
   });
 }

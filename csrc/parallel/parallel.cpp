@@ -3,6 +3,7 @@
 
 #include <algorithm>
 #include <atomic>
+#include <chrono>
 #include <condition_variable>
 #include <exception>
 #include <mutex>
@@ -17,6 +18,7 @@ std::atomic<ThreadCountSource> g_thread_count{nullptr};
 
 // A body that calls parallel_for again runs its inner range inline instead of oversubscribing.
 thread_local bool t_inside_parallel_region = false;
+thread_local int t_serial_depth = 0;  // SerialScope
 
 int hardware_threads() { return std::max(1, static_cast<int>(std::thread::hardware_concurrency())); }
 
@@ -32,6 +34,7 @@ class WorkerPool {
     {
       std::lock_guard<std::mutex> lock(mutex_);
       stopping_ = true;
+      stopping_flag_.store(true, std::memory_order_relaxed);
     }
     wake_.notify_all();
     for (auto& thread : threads_) thread.join();
@@ -45,16 +48,24 @@ class WorkerPool {
   void run(int64_t chunks, const std::function<void(int64_t)>& task) {
     std::lock_guard<std::mutex> one_job_at_a_time(run_mutex_);
     Job job(&task, chunks);
+    bool anyone_asleep;
     {
       std::lock_guard<std::mutex> lock(mutex_);
       job_ = &job;
-      ++generation_;
+      generation_.fetch_add(1, std::memory_order_release);
+      anyone_asleep = sleeping_ > 0;
     }
-    wake_.notify_all();
+    if (anyone_asleep) wake_.notify_all();
     drain(job);
+    {
+      std::lock_guard<std::mutex> lock(mutex_);
+      job_ = nullptr;  // late workers no longer join; wait for those that did
+    }
+    // Watched first, as the workers watch for jobs: sleeping here and being woken took longer than the
+    // other thread's share of a small GEMM.
+    watch([&] { return job.active.load(std::memory_order_acquire) == 0; });
     std::unique_lock<std::mutex> lock(mutex_);
-    job_ = nullptr;  // late workers no longer join; wait for those that did
-    done_.wait(lock, [&] { return job.active == 0; });
+    done_.wait(lock, [&] { return job.active.load() == 0; });
     if (job.error) std::rethrow_exception(job.error);
   }
 
@@ -64,7 +75,7 @@ class WorkerPool {
     const std::function<void(int64_t)>* task;
     int64_t chunks;
     std::atomic<int64_t> next{0};
-    int active = 0;  // workers inside drain(); guarded by mutex_
+    std::atomic<int> active{0};  // workers inside drain(); changed under mutex_
     std::mutex error_mutex;
     std::exception_ptr error;  // the first exception a task threw
   };
@@ -87,9 +98,14 @@ class WorkerPool {
     uint64_t seen = 0;
     std::unique_lock<std::mutex> lock(mutex_);
     for (;;) {
-      wake_.wait(lock, [&] { return stopping_ || (job_ != nullptr && generation_ != seen); });
+      lock.unlock();
+      await_next_job(seen);
+      lock.lock();
+      ++sleeping_;
+      wake_.wait(lock, [&] { return stopping_ || (job_ != nullptr && generation_.load() != seen); });
+      --sleeping_;
       if (stopping_) return;
-      seen = generation_;
+      seen = generation_.load();
       Job* job = job_;
       ++job->active;
       lock.unlock();
@@ -99,14 +115,35 @@ class WorkerPool {
     }
   }
 
+  // A worker that has just finished watches for the next job a short while before it sleeps: a model's
+  // forward calls the kernels back to back, and waking a sleeping thread took tens of microseconds
+  // (on a virtual machine), more than a small layer's whole GEMM. It yields while it watches, so that
+  // another runnable thread (torch's own, another process) gets the core.
+  void await_next_job(uint64_t seen) const {
+    watch([&] {
+      return generation_.load(std::memory_order_acquire) != seen || stopping_flag_.load(std::memory_order_relaxed);
+    });
+  }
+
+  // Returns once done() holds or kWatchTime has passed, whichever comes first.
+  template <typename Done>
+  static void watch(Done&& done) {
+    const auto deadline = std::chrono::steady_clock::now() + kWatchTime;
+    while (!done() && std::chrono::steady_clock::now() < deadline) std::this_thread::yield();
+  }
+
+  static constexpr std::chrono::microseconds kWatchTime{200};
+
   std::vector<std::thread> threads_;
   std::mutex run_mutex_;
   std::mutex mutex_;
   std::condition_variable wake_;
   std::condition_variable done_;
   Job* job_ = nullptr;
-  uint64_t generation_ = 0;
+  std::atomic<uint64_t> generation_{0};  // written under mutex_, read without it while watching
+  int sleeping_ = 0;                     // workers waiting on wake_; guarded by mutex_
   bool stopping_ = false;
+  std::atomic<bool> stopping_flag_{false};  // stopping_, for the watch
 };
 
 WorkerPool& pool() {
@@ -120,7 +157,7 @@ void pool_parallel_for(int64_t begin, int64_t end, int64_t grain_size, const Ran
   const ThreadCountSource source = g_thread_count.load(std::memory_order_acquire);
   const int64_t threads = std::max(1, source != nullptr ? source() : hardware_threads());
   const int64_t chunks = std::min({threads, range / grain, static_cast<int64_t>(pool().size()) + 1});
-  if (chunks <= 1 || t_inside_parallel_region) {
+  if (chunks <= 1 || t_inside_parallel_region || t_serial_depth > 0) {
     body(begin, end);
     return;
   }
@@ -141,6 +178,14 @@ void parallel_for(int64_t begin, int64_t end, int64_t grain_size, const RangeBod
   } else {
     pool_parallel_for(begin, end, grain_size, body);
   }
+}
+
+SerialScope::SerialScope(bool serial) : serial_(serial) {
+  if (serial_) ++t_serial_depth;
+}
+
+SerialScope::~SerialScope() {
+  if (serial_) --t_serial_depth;
 }
 
 void set_parallel_backend(ParallelForBackend backend) { g_backend.store(backend, std::memory_order_release); }

@@ -19,6 +19,20 @@ using ParallelForBackend = void (*)(int64_t begin, int64_t end, int64_t grain_si
 // body in any thread is rethrown to the caller after every chunk in flight has finished.
 void parallel_for(int64_t begin, int64_t end, int64_t grain_size, const RangeBody& body);
 
+// While one is alive with serial = true, the default pool runs this thread's parallel_for calls inline:
+// for work so small that handing a share to another thread costs more than it saves. A backend set with
+// set_parallel_backend still sees every call.
+class SerialScope {
+ public:
+  explicit SerialScope(bool serial);
+  ~SerialScope();
+  SerialScope(const SerialScope&) = delete;
+  SerialScope& operator=(const SerialScope&) = delete;
+
+ private:
+  bool serial_;
+};
+
 // Replaces the default pool (for tests and embedders); nullptr restores it.
 void set_parallel_backend(ParallelForBackend backend);
 
