@@ -217,6 +217,17 @@ DecodeActivations decode_activations(const Element* x, int64_t m, int64_t k, int
 
 // The offset codes u of one 64-byte load of a weight row: the even columns' and the odd columns' in
 // bytes. The bytes past k (outside `bytes`) give u = 0, so that they add nothing to z_x * sum(u).
+// The row kernels read each weight row once, front to back, and the rows one after another: a prefetch
+// this far ahead of every 64-byte load keeps the next rows' bytes arriving while the current ones are
+// multiplied (the hardware prefetchers alone left the cold decode at 60 % of the streaming bandwidth).
+// Past the end of the weights it touches nothing: a prefetch does not fault.
+constexpr int64_t kWeightPrefetchBytes = 2048;
+
+inline void prefetch_weights(const uint8_t* packed) {
+  // An address, not a pointer into the weights: it may lie past their end.
+  _mm_prefetch(reinterpret_cast<const char*>(reinterpret_cast<uintptr_t>(packed) + kWeightPrefetchBytes), _MM_HINT_T0);
+}
+
 inline void offset_weight_nibbles(const uint8_t* packed, __mmask64 bytes, bool full, __m512i& even, __m512i& odd) {
   const __m512i flip = _mm512_set1_epi8(static_cast<char>(0x88));
   const __m512i low_nibbles = _mm512_set1_epi8(0x0F);
@@ -276,6 +287,7 @@ void decode_int_kernel(const uint8_t* weight_row, const float* scales_row, int64
   for (int r = 0; r < kRows; ++r) acc[r] = _mm512_setzero_ps();
   for (int64_t t = 0; t < blocks; ++t) {
     const bool full = t < full_blocks;
+    prefetch_weights(weight_row + t * (kBlockColumns / 2));
     __m512i even, odd;
     offset_weight_nibbles(weight_row + t * (kBlockColumns / 2), tail_bytes, full, even, odd);
     [[maybe_unused]] const __m512i both = kWideCodes ? _mm512_add_epi8(even, odd) : even;  // u sums: below 31
@@ -478,6 +490,7 @@ void bf16_decode_kernel(const uint8_t* weight_row, const float* scales_row, int6
   for (int r = 0; r < kRows; ++r) acc[r] = _mm512_setzero_ps();
   for (int64_t t = 0; t < blocks; ++t) {
     const uint8_t* packed = weight_row + t * (kBlockColumns / 2);
+    prefetch_weights(packed);
     // Past k the weights do not matter: the activations there are zero.
     const __m512i u = _mm512_xor_si512(t < full_blocks ? _mm512_loadu_si512(packed) : _mm512_maskz_loadu_epi8(tail_bytes, packed), flip);
     const __m512i even = _mm512_and_si512(_mm512_slli_epi16(u, 3), code_bits);
