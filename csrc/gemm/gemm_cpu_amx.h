@@ -262,8 +262,7 @@ struct AmxActivations {
   int64_t stride() const { return step_bytes; }
 };
 
-// A step: 64 bytes of A (64 columns of u8 codes, 32 of bf16), or the group's bytes where the group is
-// smaller, so that a group is a whole number of steps.
+// The bytes of A's rows in one step (the header's "Tiles").
 template <typename Kind>
 int64_t amx_step_bytes(int group_size) {
   return std::min<int64_t>(kAmxMaxStepBytes, group_size * Kind::kElementBytes);
