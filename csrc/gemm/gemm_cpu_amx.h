@@ -43,6 +43,7 @@
 #include "common/cpu_dtype.h"
 #include "common/format.h"
 #include "cpu/isa_region.h"
+#include "cpu/x86_ops.h"
 #include "parallel/parallel.h"
 
 DYQ_ISA_BEGIN
@@ -260,6 +261,11 @@ struct AmxActivations {
   // of step_columns()); its rows are stride() bytes apart.
   const uint8_t* tile(int64_t row_begin, int64_t column) const { return bytes.data() + offset(row_begin, column); }
   int64_t stride() const { return step_bytes; }
+  // Steps of the slice starting at `column` (the last slice may hold fewer).
+  int64_t slice_steps(int64_t column) const {
+    const int64_t steps_per_slice = kAmxPanelDepth / step_columns();
+    return std::min(steps_per_slice, steps - column / kAmxPanelDepth * steps_per_slice);
+  }
 };
 
 // The bytes of A's rows in one step (the header's "Tiles").
@@ -362,111 +368,167 @@ struct ScalarAmxPanel {
   }
 };
 
+// totals[r][0..32) += one group's contribution for rows [0, rows), from the group's C tiles `group_sums`
+// (the epilogue, docs/numerics.md section 3):
+// - AmxInt8: P = sum q_x q_w - z_x sum q_w, exact in fp32 (integers below 2^24), times s_x s_w;
+// - AmxBf16: the fp32 sums times s_w.
+// z_x and s_x of row r are zeros[r * params_stride] and row_scales[r * params_stride]. On AVX-512 the 32
+// outputs' factors stay in four registers over the rows; the scaling runs on the vector units beside the
+// AMX unit's tile products, and it costs about as much as they do, so every instruction of it counts.
+template <typename Kind>
+void add_group_to_totals(const uint32_t (*group_sums)[kAmxPanelColumns], int64_t rows, const float* zeros,
+                         const float* row_scales, int64_t params_stride, const float* weight_scales,
+                         const float* weight_sums, float* totals) {
+#if defined(DYQ_CPU_ISA_AVX512)
+  const __m512 scales_low = _mm512_loadu_ps(weight_scales), scales_high = _mm512_loadu_ps(weight_scales + 16);
+  if constexpr (Kind::kQuantized) {
+    const __m512 sums_low = _mm512_loadu_ps(weight_sums), sums_high = _mm512_loadu_ps(weight_sums + 16);
+    for (int64_t r = 0; r < rows; ++r) {
+      const __m512 zero = _mm512_set1_ps(zeros[r * params_stride]);
+      const __m512 row_scale = _mm512_set1_ps(row_scales[r * params_stride]);
+      float* total = totals + r * kAmxPanelColumns;
+      const __m512 low = _mm512_fnmadd_ps(zero, sums_low, cvtepi32_ps(_mm512_load_si512(group_sums[r])));
+      const __m512 high = _mm512_fnmadd_ps(zero, sums_high, cvtepi32_ps(_mm512_load_si512(group_sums[r] + 16)));
+      _mm512_storeu_ps(total, _mm512_fmadd_ps(low, _mm512_mul_ps(row_scale, scales_low), _mm512_loadu_ps(total)));
+      _mm512_storeu_ps(total + 16,
+                       _mm512_fmadd_ps(high, _mm512_mul_ps(row_scale, scales_high), _mm512_loadu_ps(total + 16)));
+    }
+  } else {
+    for (int64_t r = 0; r < rows; ++r) {
+      float* total = totals + r * kAmxPanelColumns;
+      const __m512 low = _mm512_castsi512_ps(_mm512_load_si512(group_sums[r]));
+      const __m512 high = _mm512_castsi512_ps(_mm512_load_si512(group_sums[r] + 16));
+      _mm512_storeu_ps(total, _mm512_fmadd_ps(low, scales_low, _mm512_loadu_ps(total)));
+      _mm512_storeu_ps(total + 16, _mm512_fmadd_ps(high, scales_high, _mm512_loadu_ps(total + 16)));
+    }
+  }
+#else
+  for (int64_t r = 0; r < rows; ++r) {
+    float* total = totals + r * kAmxPanelColumns;
+    for (int64_t j = 0; j < kAmxPanelColumns; ++j) {
+      if constexpr (Kind::kQuantized) {
+        const float partial =
+            static_cast<float>(static_cast<int32_t>(group_sums[r][j])) - zeros[r * params_stride] * weight_sums[j];
+        total[j] += partial * (row_scales[r * params_stride] * weight_scales[j]);
+      } else {
+        float sum;
+        std::memcpy(&sum, &group_sums[r][j], 4);
+        total[j] += sum * weight_scales[j];
+      }
+    }
+  }
+#endif
+}
+
+// Panels unpacked per pass over the activations: each block of 32 activation rows is run against every
+// panel of the pass while its A tiles are in the L1 cache, instead of coming from L2 once per panel (the
+// activations of a slice for 256 rows are 64 KiB). Two panels' slices (2 x 8 KiB) and a block's A steps
+// (8 KiB) leave room in a 48 KiB L1 for the C tile buffers and the totals being scaled.
+constexpr int64_t kAmxPanelsPerPass = 2;
+
 // out = x W^T (+ bias) through the tile loop: AmxInt8 at act_bits 2/4/8, AmxBf16 at 16. Panel is
 // ScalarAmxPanel<Kind> or a packer of the same layout. Threads split the panels of 32 output rows; each
-// configures its own tiles, unpacks each slice of its panel once, runs it against every activation row,
-// and keeps the running totals of its 32 outputs for all rows.
+// configures its own tiles, takes its panels kAmxPanelsPerPass at a time, unpacks each slice of them once,
+// runs the slice against every activation row, and keeps the running totals of their outputs for all rows.
 template <typename Tiles, typename Kind, typename Panel, typename Element>
 void amx_gemm(const Element* x, const uint8_t* qweight, const float* scales, const Element* bias, int64_t m, int64_t n,
               int64_t k, int group_size, int act_bits, Element* out) {
   const AmxActivations<Kind> a = amx_activations<Kind>(x, m, k, group_size, act_bits);
   const int64_t step_bytes = a.step_bytes;
   const int64_t step_columns = a.step_columns();
-  const int64_t columns_per_b_row = kAmxQuadColumns / Kind::kStepsPerQuad;
   constexpr int64_t kBStride = kAmxPanelColumns * 4;  // bytes of one B row: a dword per output
+  // Everything the loops step by, computed once: a division per group cost as much as a tile product.
+  const int64_t steps_per_group = group_size / step_columns;
+  const int64_t groups_per_slice = kAmxPanelDepth / group_size;
+  const int64_t a_step_bytes = kAmxRowBlock * step_bytes;                                  // a block's step
+  const int64_t b_step_bytes = step_columns / (kAmxQuadColumns / Kind::kStepsPerQuad) * kBStride;  // B tile rows
   const int64_t panels = (n + kAmxPanelColumns - 1) / kAmxPanelColumns;
   parallel_for(0, panels, 1, [&](int64_t panel_begin, int64_t panel_end) {
     Tiles tiles;
     tiles.configure(step_bytes);
-    Panel panel;
+    Panel pass_panels[kAmxPanelsPerPass];
     // The C tiles of a group go to one of two buffers, and the previous group's are scaled into the totals
     // after the next group's tile products are issued: the AMX unit works through those while the vector
     // units scale, which would otherwise take turns (the scaling costs about as much as the products).
     alignas(64) uint32_t sums[2][kAmxRowBlock][kAmxPanelColumns];
     struct Pending {
-      int64_t row_begin = -1, rows = 0, group = 0;  // group: within the slice
+      int64_t row_begin = -1, rows = 0, group = 0, global_group = 0;  // group: within the slice
+      int panel = 0;                                                  // within the pass
     } pending;
-    std::vector<float> totals(a.rows * kAmxPanelColumns);
-    auto scale_into_totals = [&](const Pending& job, const uint32_t (*group_sums)[kAmxPanelColumns], int64_t slice) {
-      const int64_t global_group = slice / group_size + job.group;
-      // The group's factors of the 32 outputs, copied so that they stay in registers over the rows (the
-      // stores into the totals could alias the panel's arrays otherwise).
-      float weight_scales[kAmxPanelColumns], weight_sums[kAmxPanelColumns];
-      std::memcpy(weight_scales, &panel.scales[job.group * kAmxPanelColumns], sizeof(weight_scales));
-      if constexpr (Kind::kQuantized) {
-        std::memcpy(weight_sums, &panel.weight_sums[job.group * kAmxPanelColumns], sizeof(weight_sums));
-      }
+    std::vector<float> totals(kAmxPanelsPerPass * a.rows * kAmxPanelColumns);  // [panel][row][32]
+    int64_t pass_begin = panel_begin;
+    // Adds a group's contribution to the totals of its block of rows.
+    auto scale_into_totals = [&](const Pending& job, const uint32_t (*group_sums)[kAmxPanelColumns]) {
+      const Panel& panel = pass_panels[job.panel];
+      float* block_totals = &totals[(job.panel * a.rows + job.row_begin) * kAmxPanelColumns];
+      const float* weight_sums = Kind::kQuantized ? &panel.weight_sums[job.group * kAmxPanelColumns] : nullptr;
+      const float* zeros = Kind::kQuantized ? &a.zeros[job.row_begin * a.groups + job.global_group] : nullptr;
+      const float* row_scales = Kind::kQuantized ? &a.scales[job.row_begin * a.groups + job.global_group] : nullptr;
+      add_group_to_totals<Kind>(group_sums, job.rows, zeros, row_scales, a.groups,
+                                &panel.scales[job.group * kAmxPanelColumns], weight_sums, block_totals);
+      if (job.global_group + 1 < a.groups) return;
+      // The rows' last group: their outputs (plus the bias), written while the totals are in L1, and spread
+      // over the last slice's tile work instead of in one burst at the end.
+      const int64_t weight_row = (pass_begin + job.panel) * kAmxPanelColumns;
+      const int64_t columns = std::min(kAmxPanelColumns, n - weight_row);
       for (int64_t r = 0; r < job.rows; ++r) {
-        const int64_t row = job.row_begin + r;
-        float* total = &totals[row * kAmxPanelColumns];
-        if constexpr (Kind::kQuantized) {
-          // P = sum q_x q_w - z_x sum q_w, exact in fp32 (integers below 2^24).
-          const float zero = a.zeros[row * a.groups + global_group];
-          const float row_scale = a.scales[row * a.groups + global_group];
-          for (int64_t j = 0; j < kAmxPanelColumns; ++j) {
-            const float partial = static_cast<float>(static_cast<int32_t>(group_sums[r][j])) - zero * weight_sums[j];
-            total[j] += partial * (row_scale * weight_scales[j]);
-          }
+        const float* total = block_totals + r * kAmxPanelColumns;
+        Element* out_row = out + (job.row_begin + r) * n + weight_row;
+        if (bias != nullptr) {
+          for (int64_t j = 0; j < columns; ++j) out_row[j] = from_float<Element>(total[j] + to_float(bias[weight_row + j]));
         } else {
-          for (int64_t j = 0; j < kAmxPanelColumns; ++j) {
-            float sum;
-            std::memcpy(&sum, &group_sums[r][j], 4);
-            total[j] += sum * weight_scales[j];
-          }
+          for (int64_t j = 0; j < columns; ++j) out_row[j] = from_float<Element>(total[j]);
         }
       }
     };
-    for (int64_t p = panel_begin; p < panel_end; ++p) {
-      const int64_t weight_row = p * kAmxPanelColumns;
-      const int64_t columns = std::min(kAmxPanelColumns, n - weight_row);
+    for (; pass_begin < panel_end; pass_begin += kAmxPanelsPerPass) {
+      const int pass_count = static_cast<int>(std::min(kAmxPanelsPerPass, panel_end - pass_begin));
       std::fill(totals.begin(), totals.end(), 0.0f);
-      for (int64_t slice = 0; slice < k; slice += kAmxPanelDepth) {
+      for (int64_t slice = 0, slice_group = 0; slice < k; slice += kAmxPanelDepth, slice_group += groups_per_slice) {
         const int64_t depth = std::min(kAmxPanelDepth, k - slice);
-        panel.pack(qweight, scales, n, k, group_size, weight_row, slice, depth);
-        const auto* panel_bytes = reinterpret_cast<const uint8_t*>(panel.steps.data());
+        const int64_t slice_groups = group_count(depth, group_size);
+        for (int i = 0; i < pass_count; ++i) {
+          pass_panels[i].pack(qweight, scales, n, k, group_size, (pass_begin + i) * kAmxPanelColumns, slice, depth);
+        }
         int buffer = 0;
-        for (int64_t row_begin = 0; row_begin < m; row_begin += kAmxRowBlock) {
-          // The block's steps in this slice, one after another (AmxActivations).
-          const uint8_t* a_steps = a.tile(row_begin, slice);
-          const int64_t a_step_bytes = kAmxRowBlock * step_bytes;
-          // A last group cut by k reads steps past `depth`: their activations are 0, so whatever a packer
-          // left there adds nothing.
-          for (int64_t first = 0; first < depth; first += group_size) {
-            tiles.template zero<0>();
-            tiles.template zero<1>();
-            tiles.template zero<2>();
-            tiles.template zero<3>();
-            const uint8_t* a_tile = a_steps + first / step_columns * a_step_bytes;
-            for (int64_t c = first; c < first + group_size; c += step_columns, a_tile += a_step_bytes) {
-              const uint8_t* b_tile = panel_bytes + c / columns_per_b_row * kBStride;
-              tiles.template load<4>(a_tile, a.stride());
-              tiles.template load<5>(a_tile + kAmxTileRows * a.stride(), a.stride());
-              tiles.template load<6>(b_tile, kBStride);
-              tiles.template load<7>(b_tile + 64, kBStride);
-              Kind::template product<0, 4, 6>(tiles);
-              Kind::template product<1, 4, 7>(tiles);
-              Kind::template product<2, 5, 6>(tiles);
-              Kind::template product<3, 5, 7>(tiles);
+        // The block's steps in this slice, one after another (AmxActivations).
+        const uint8_t* a_steps = a.tile(0, slice);
+        const int64_t a_block_bytes = a.slice_steps(slice) * a_step_bytes;
+        for (int64_t row_begin = 0; row_begin < m; row_begin += kAmxRowBlock, a_steps += a_block_bytes) {
+          for (int i = 0; i < pass_count; ++i) {
+            const auto* b_steps = reinterpret_cast<const uint8_t*>(pass_panels[i].steps.data());
+            // A last group cut by k reads steps past `depth`: their activations are 0, so whatever a packer
+            // left there adds nothing.
+            const uint8_t* a_tile = a_steps;
+            const uint8_t* b_tile = b_steps;
+            for (int64_t group = 0; group < slice_groups; ++group) {
+              tiles.template zero<0>();
+              tiles.template zero<1>();
+              tiles.template zero<2>();
+              tiles.template zero<3>();
+              for (int64_t step = 0; step < steps_per_group; ++step, a_tile += a_step_bytes, b_tile += b_step_bytes) {
+                tiles.template load<4>(a_tile, step_bytes);
+                tiles.template load<5>(a_tile + kAmxTileRows * step_bytes, step_bytes);
+                tiles.template load<6>(b_tile, kBStride);
+                tiles.template load<7>(b_tile + 64, kBStride);
+                Kind::template product<0, 4, 6>(tiles);
+                Kind::template product<1, 4, 7>(tiles);
+                Kind::template product<2, 5, 6>(tiles);
+                Kind::template product<3, 5, 7>(tiles);
+              }
+              if (pending.row_begin >= 0) scale_into_totals(pending, sums[buffer ^ 1]);
+              tiles.template store<0>(&sums[buffer][0][0], kBStride);
+              tiles.template store<1>(&sums[buffer][0][16], kBStride);
+              tiles.template store<2>(&sums[buffer][16][0], kBStride);
+              tiles.template store<3>(&sums[buffer][16][16], kBStride);
+              pending = {row_begin, std::min(kAmxRowBlock, m - row_begin), group, slice_group + group, i};
+              buffer ^= 1;
             }
-            if (pending.row_begin >= 0) scale_into_totals(pending, sums[buffer ^ 1], slice);
-            tiles.template store<0>(&sums[buffer][0][0], kBStride);
-            tiles.template store<1>(&sums[buffer][0][16], kBStride);
-            tiles.template store<2>(&sums[buffer][16][0], kBStride);
-            tiles.template store<3>(&sums[buffer][16][16], kBStride);
-            pending = {row_begin, std::min(kAmxRowBlock, m - row_begin), first / group_size};
-            buffer ^= 1;
           }
         }
         // The slice's last group, before the next slice is packed over its scales.
-        scale_into_totals(pending, sums[buffer ^ 1], slice);
+        scale_into_totals(pending, sums[buffer ^ 1]);
         pending = {};
-      }
-      for (int64_t r = 0; r < m; ++r) {
-        float* total = &totals[r * kAmxPanelColumns];
-        if (bias != nullptr) {
-          for (int64_t j = 0; j < columns; ++j) total[j] += to_float(bias[weight_row + j]);
-        }
-        for (int64_t j = 0; j < columns; ++j) out[r * n + weight_row + j] = from_float<Element>(total[j]);
       }
     }
     tiles.release();
