@@ -37,6 +37,8 @@
 #include <cmath>
 #include <cstdint>
 #include <cstring>
+#include <memory>
+#include <type_traits>
 #include <vector>
 
 #include "activation/act_quant_cpu_row.h"
@@ -243,7 +245,7 @@ struct NativeTiles {
 template <typename Kind>
 struct AmxActivations {
   int64_t rows = 0, groups = 0, step_bytes = 0, steps = 0;  // steps: of all the padded columns
-  std::vector<uint8_t> bytes;
+  std::unique_ptr<uint8_t[]> bytes;  // left uninitialized: amx_activations writes every byte
   std::vector<float> zeros, scales;  // [m][groups], AmxInt8
 
   int64_t step_columns() const { return step_bytes / Kind::kElementBytes; }
@@ -259,7 +261,7 @@ struct AmxActivations {
   }
   // The A tile of rows [row_begin, row_begin + 16) (row_begin a multiple of 16) at `column` (a multiple
   // of step_columns()); its rows are stride() bytes apart.
-  const uint8_t* tile(int64_t row_begin, int64_t column) const { return bytes.data() + offset(row_begin, column); }
+  const uint8_t* tile(int64_t row_begin, int64_t column) const { return bytes.get() + offset(row_begin, column); }
   int64_t stride() const { return step_bytes; }
   // Steps of the slice starting at `column` (the last slice may hold fewer).
   int64_t slice_steps(int64_t column) const {
@@ -274,6 +276,21 @@ int64_t amx_step_bytes(int group_size) {
   return std::min<int64_t>(kAmxMaxStepBytes, group_size * Kind::kElementBytes);
 }
 
+// The A bytes of one step of the int8 kind from its codes in column order (step_columns a multiple of 16):
+// within every 8 columns the even ones, then the odd ones (AmxInt8::quad_bytes), one byte shuffle per 16
+// columns where SSSE3 is compiled in.
+inline void int8_step_bytes(const uint8_t* codes, int64_t step_columns, uint8_t* out) {
+#if defined(DYQ_ISA_TARGET)
+  const __m128i even_then_odd = _mm_setr_epi8(0, 2, 4, 6, 1, 3, 5, 7, 8, 10, 12, 14, 9, 11, 13, 15);
+  for (int64_t c = 0; c < step_columns; c += 16) {
+    const __m128i chunk = _mm_loadu_si128(reinterpret_cast<const __m128i*>(codes + c));
+    _mm_storeu_si128(reinterpret_cast<__m128i*>(out + c), _mm_shuffle_epi8(chunk, even_then_odd));
+  }
+#else
+  for (int64_t c = 0; c < step_columns; c += kAmxQuadColumns) AmxInt8::quad_bytes(codes + c, out + c);
+#endif
+}
+
 template <typename Kind, typename Element>
 AmxActivations<Kind> amx_activations(const Element* x, int64_t m, int64_t k, int group_size, int act_bits) {
   AmxActivations<Kind> a;
@@ -281,39 +298,60 @@ AmxActivations<Kind> amx_activations(const Element* x, int64_t m, int64_t k, int
   a.step_bytes = amx_step_bytes<Kind>(group_size);
   a.steps = a.groups * group_size / a.step_columns();
   a.rows = (m + kAmxRowBlock - 1) / kAmxRowBlock * kAmxRowBlock;
-  a.bytes.assign(a.rows * a.steps * a.step_bytes, 0);
+  // Every byte of the rows below m is written below; only the padding rows of the last block are zeroed.
+  a.bytes.reset(new uint8_t[a.rows * a.steps * a.step_bytes]);
   if constexpr (Kind::kQuantized) {
-    a.zeros.assign(m * a.groups, 0.0f);
-    a.scales.assign(m * a.groups, 0.0f);
+    a.zeros.resize(m * a.groups);
+    a.scales.resize(m * a.groups);
   }
   const int64_t padded = a.groups * group_size;  // columns, zero past k
   const int64_t step_columns = a.step_columns();
-  parallel_for(0, m, 4, [&](int64_t row_begin, int64_t row_end) {
-    std::vector<float> row(padded, 0.0f);
-    std::vector<uint8_t> codes(padded, 0);
-    std::vector<ActivationGroupParams> params(a.groups);
+  const int64_t line_bytes = kAmxRowBlock * a.step_bytes;  // a slice's consecutive steps of one row
+  for (int64_t r = m; r < a.rows; ++r) {
+    for (int64_t slice = 0; slice < padded; slice += kAmxPanelDepth) {
+      uint8_t* line = a.bytes.get() + a.offset(r, slice);
+      for (int64_t step = slice; step < std::min(padded, slice + kAmxPanelDepth); step += step_columns) {
+        std::memset(line, 0, a.step_bytes);
+        line += line_bytes;
+      }
+    }
+  }
+  parallel_for(0, m, 16, [&](int64_t row_begin, int64_t row_end) {
+    std::vector<float> row(padded, 0.0f);  // x in fp32, where it is not fp32 already
+    std::vector<uint8_t> codes(padded, 0);  // stays 0 past k
     for (int64_t r = row_begin; r < row_end; ++r) {
-      if constexpr (Kind::kQuantized) {
-        quantize_activation_row(x + r * k, k, group_size, act_bits, row.data(), codes.data(), params.data());
-        for (int64_t g = 0; g < a.groups; ++g) {
-          a.zeros[r * a.groups + g] = static_cast<float>(params[g].zero);
-          a.scales[r * a.groups + g] = params[g].scale;
-        }
+      const float* values = row.data();
+      if constexpr (std::is_same_v<Element, float>) {
+        values = x + r * k;
       } else {
         load_row_fp32(x + r * k, k, row.data());
       }
+      if constexpr (Kind::kQuantized) {
+        for (int64_t g = 0; g < a.groups; ++g) {
+          const ActivationGroupParams params = quantize_group(values + g * group_size, group_columns(k, group_size, g),
+                                                              act_bits, codes.data() + g * group_size);
+          a.zeros[r * a.groups + g] = static_cast<float>(params.zero);
+          a.scales[r * a.groups + g] = params.scale;
+        }
+      }
       // Step by step into the row's line of each step's tile (one offset per slice: the steps of a
       // slice's block are a line of 32 rows apart).
-      const int64_t line_bytes = kAmxRowBlock * a.step_bytes;
       for (int64_t slice = 0; slice < padded; slice += kAmxPanelDepth) {
-        uint8_t* line = a.bytes.data() + a.offset(r, slice);
+        uint8_t* line = a.bytes.get() + a.offset(r, slice);
         const int64_t slice_end = std::min(padded, slice + kAmxPanelDepth);
         for (int64_t step = slice; step < slice_end; step += step_columns, line += line_bytes) {
-          for (int64_t c = 0; c < step_columns; c += kAmxQuadColumns) {
-            if constexpr (Kind::kQuantized) {
-              Kind::quad_bytes(codes.data() + step + c, line + c);
-            } else {
-              Kind::quad_bytes(row.data() + step + c, line + 2 * c);
+          if constexpr (Kind::kQuantized) {
+            int8_step_bytes(codes.data() + step, step_columns, line);
+          } else {
+            // Past k: zeros (the tail of the last group), which the fp32 input does not hold.
+            for (int64_t c = 0; c < step_columns; c += kAmxQuadColumns) {
+              if (step + c + kAmxQuadColumns <= k) {
+                Kind::quad_bytes(values + step + c, line + 2 * c);
+              } else {
+                float quad[kAmxQuadColumns] = {};
+                for (int64_t i = 0; i < kAmxQuadColumns && step + c + i < k; ++i) quad[i] = values[step + c + i];
+                Kind::quad_bytes(quad, line + 2 * c);
+              }
             }
           }
         }

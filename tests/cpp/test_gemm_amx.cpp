@@ -44,10 +44,11 @@ void expect_matches_reference(const AmxProblem& p, int act_bits, Gemm&& gemm, co
   }
 }
 
-// m below, at and above the 32 rows of a pass; n not a multiple of a 32-column panel; k with a remainder group,
-// and k over one or more 256-column slices of a panel.
+// m below, at and above the 32 rows of a block; n not a multiple of a 32-column panel, and one, two and
+// three panels (a pass takes two); k with a remainder group, k not a multiple of 8 (a step's last columns
+// past k), and k over one or more 256-column slices of a panel.
 const AmxProblem kProblems[] = {{1, 40, 256, 128}, {17, 33, 192, 64}, {32, 64, 128, 32}, {45, 70, 200, 64},
-                                {70, 31, 352, 32}, {33, 40, 600, 128}};
+                                {70, 31, 352, 32}, {33, 40, 600, 128}, {20, 90, 202, 32}};
 
 class AmxTileLoopTest : public ::testing::TestWithParam<int> {};
 
