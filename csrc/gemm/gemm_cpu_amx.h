@@ -291,6 +291,32 @@ inline void int8_step_bytes(const uint8_t* codes, int64_t step_columns, uint8_t*
 #endif
 }
 
+// The A bytes of one bf16 step from its fp32 values, of which the first `columns_in_k` exist (zeros past
+// k, the tail of the last group, which the fp32 input does not hold). A whole 32-column step goes through
+// vcvtne2ps2bf16 where it is compiled in; that instruction reads fp32 denormals as 0 where the format
+// rounds them (bf16_bits), so a step that holds one is converted one value at a time.
+inline void bf16_step_bytes(const float* values, int64_t columns_in_k, int64_t step_columns, uint8_t* out) {
+#if defined(DYQ_AVX512_HAS_BF16)
+  if (step_columns == 32 && columns_in_k >= 32) {
+    const __m512 low = _mm512_loadu_ps(values), high = _mm512_loadu_ps(values + 16);
+    constexpr int kDenormal = 0x20;  // vfpclassps: denormal
+    if ((_mm512_fpclass_ps_mask(low, kDenormal) | _mm512_fpclass_ps_mask(high, kDenormal)) == 0) {
+      _mm512_storeu_si512(out, reinterpret_cast<__m512i>(_mm512_cvtne2ps_pbh(high, low)));
+      return;
+    }
+  }
+#endif
+  for (int64_t c = 0; c < step_columns; c += kAmxQuadColumns) {
+    if (c + kAmxQuadColumns <= columns_in_k) {
+      AmxBf16::quad_bytes(values + c, out + 2 * c);
+    } else {
+      float quad[kAmxQuadColumns] = {};
+      for (int64_t i = 0; i < kAmxQuadColumns && c + i < columns_in_k; ++i) quad[i] = values[c + i];
+      AmxBf16::quad_bytes(quad, out + 2 * c);
+    }
+  }
+}
+
 template <typename Kind, typename Element>
 AmxActivations<Kind> amx_activations(const Element* x, int64_t m, int64_t k, int group_size, int act_bits) {
   AmxActivations<Kind> a;
@@ -343,16 +369,7 @@ AmxActivations<Kind> amx_activations(const Element* x, int64_t m, int64_t k, int
           if constexpr (Kind::kQuantized) {
             int8_step_bytes(codes.data() + step, step_columns, line);
           } else {
-            // Past k: zeros (the tail of the last group), which the fp32 input does not hold.
-            for (int64_t c = 0; c < step_columns; c += kAmxQuadColumns) {
-              if (step + c + kAmxQuadColumns <= k) {
-                Kind::quad_bytes(values + step + c, line + 2 * c);
-              } else {
-                float quad[kAmxQuadColumns] = {};
-                for (int64_t i = 0; i < kAmxQuadColumns && step + c + i < k; ++i) quad[i] = values[step + c + i];
-                Kind::quad_bytes(quad, line + 2 * c);
-              }
-            }
+            bf16_step_bytes(values + step, k - step, step_columns, line);
           }
         }
       }
