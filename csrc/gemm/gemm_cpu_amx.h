@@ -4,9 +4,13 @@
 //   EmulatedTiles performs the same tile operations in scalar C++, as the instructions define them, so
 //   that the blocking, the tile configuration, the panel layout and the epilogue are tested on every
 //   CPU (gemm/gemm_cpu_amx_emulated.h).
-// - AmxInt8 (act_bits 2/4/8): tdpbusd of u8 activation codes q_x with s8 weight codes q_w. Per group the
+// - AmxInt8 (act_bits 8): tdpbusd of u8 activation codes q_x with s8 weight codes q_w. Per group the
 //   C tiles hold the exact integer sums sum q_x q_w (below 2^24), and the epilogue forms
 //   s_x s_w (sum q_x q_w - z_x sum q_w) in fp32, as the VNNI kernels do.
+// - AmxInt8Centered (act_bits 2/4): tdpbssd of the centered codes q_x - z_x, which fit s8 below 8 bits,
+//   so that the C tiles hold P = sum (q_x - z_x) q_w itself, the same integer: the epilogue saves the
+//   z_x sum q_w term (a quarter of its vector work, which does not overlap the tile products) and the
+//   panels their sums of q_w.
 // - AmxBf16 (act_bits 16): tdpbf16ps of x rounded to bf16 (round to nearest even) with the weight codes
 //   as bf16 (exact), accumulated in fp32 per group and scaled by s_w, the numerics of the AVX512-BF16
 //   kernels. Like vdpbf16ps, tdpbf16ps treats bf16 denormals as 0 and flushes fp32 denormal results.
@@ -78,11 +82,15 @@ inline float bf16_value(uint16_t bits) {
   return value;
 }
 
-struct AmxInt8 {
+// The int8 kinds: kCentered stores q_x - z_x as s8 (act_bits 2 and 4, whose codes and zero points are at
+// most 15) and multiplies with tdpbssd; otherwise u8 codes q_x with tdpbusd and z_x sum q_w in the epilogue.
+template <bool kCenteredCodes>
+struct AmxInt8Kind {
   static constexpr int64_t kElementBytes = 1;  // bytes of one activation column in A
   static constexpr int64_t kStepsPerQuad = 2;  // B rows per 8 columns
-  static constexpr bool kQuantized = true;     // u8 codes with z_x and s_x, and sum q_w per group
-  // Position of column c within its 8 columns in A and in the panel: the even columns, then the odd ones.
+  static constexpr bool kQuantized = true;     // codes with z_x and s_x
+  static constexpr bool kCentered = kCenteredCodes;
+  static constexpr bool kWeightSums = !kCenteredCodes;  // sum q_w per group, for the z_x term
   // The A bytes of 8 columns from their codes: the even columns, then the odd ones.
   static void quad_bytes(const uint8_t* codes, uint8_t* out) {
     for (int i = 0; i < 4; ++i) out[i] = codes[2 * i], out[4 + i] = codes[2 * i + 1];
@@ -99,14 +107,22 @@ struct AmxInt8 {
   }
   template <int kC, int kA, int kB, typename Tiles>
   static void product(Tiles& tiles) {
-    tiles.template dpbusd<kC, kA, kB>();
+    if constexpr (kCentered) {
+      tiles.template dpbssd<kC, kA, kB>();
+    } else {
+      tiles.template dpbusd<kC, kA, kB>();
+    }
   }
 };
+using AmxInt8 = AmxInt8Kind<false>;
+using AmxInt8Centered = AmxInt8Kind<true>;
 
 struct AmxBf16 {
   static constexpr int64_t kElementBytes = 2;
   static constexpr int64_t kStepsPerQuad = 4;
   static constexpr bool kQuantized = false;
+  static constexpr bool kCentered = false;
+  static constexpr bool kWeightSums = false;
   // The A bytes of 8 columns: their bf16 bit patterns, in column order.
   static void quad_bytes(const float* values, uint8_t* out) {
     for (int i = 0; i < 8; ++i) {
@@ -150,21 +166,32 @@ struct EmulatedTiles {
   void store(void* base, int64_t stride) {
     for (int r = 0; r < rows[kTile]; ++r) std::memcpy(static_cast<uint8_t*>(base) + r * stride, tiles[kTile][r], bytes[kTile]);
   }
-  // tdpbusd: C[m][n] += sum over the dwords i of A's row m of sum_b u8 A[m][4i + b] * s8 B[i][4n + b].
-  template <int kC, int kA, int kB>
-  void dpbusd() {
+  // tdpbusd / tdpbssd: C[m][n] += sum over the dwords i of A's row m of sum_b A[m][4i + b] * s8 B[i][4n + b],
+  // A's bytes u8 (tdpbusd) or s8 (tdpbssd).
+  template <bool kSignedA, int kC, int kA, int kB>
+  void dot_bytes() {
     for (int m = 0; m < rows[kA]; ++m) {
       for (int n = 0; n < bytes[kC] / 4; ++n) {
         int32_t sum;
         std::memcpy(&sum, &tiles[kC][m][4 * n], 4);
         for (int i = 0; i < bytes[kA] / 4; ++i) {
           for (int b = 0; b < 4; ++b) {
-            sum += int32_t{tiles[kA][m][4 * i + b]} * int32_t{static_cast<int8_t>(tiles[kB][i][4 * n + b])};
+            const uint8_t a_byte = tiles[kA][m][4 * i + b];
+            const int32_t a_value = kSignedA ? int32_t{static_cast<int8_t>(a_byte)} : int32_t{a_byte};
+            sum += a_value * int32_t{static_cast<int8_t>(tiles[kB][i][4 * n + b])};
           }
         }
         std::memcpy(&tiles[kC][m][4 * n], &sum, 4);
       }
     }
+  }
+  template <int kC, int kA, int kB>
+  void dpbusd() {
+    dot_bytes<false, kC, kA, kB>();
+  }
+  template <int kC, int kA, int kB>
+  void dpbssd() {
+    dot_bytes<true, kC, kA, kB>();
   }
   // tdpbf16ps: for each dword i of A's row m, in order, C[m][n] += A[m][2i] * B[i][2n], then
   // C[m][n] += A[m][2i + 1] * B[i][2n + 1], each product exact and each sum rounded to fp32, with bf16
@@ -225,6 +252,10 @@ struct NativeTiles {
   template <int kC, int kA, int kB>
   void dpbusd() {
     asm volatile("{tdpbusd %%tmm%c2, %%tmm%c1, %%tmm%c0|tdpbusd tmm%c0, tmm%c1, tmm%c2}" ::"i"(kC), "i"(kA), "i"(kB));
+  }
+  template <int kC, int kA, int kB>
+  void dpbssd() {
+    asm volatile("{tdpbssd %%tmm%c2, %%tmm%c1, %%tmm%c0|tdpbssd tmm%c0, tmm%c1, tmm%c2}" ::"i"(kC), "i"(kA), "i"(kB));
   }
   template <int kC, int kA, int kB>
   void dpbf16ps() {
@@ -354,8 +385,13 @@ AmxActivations<Kind> amx_activations(const Element* x, int64_t m, int64_t k, int
       }
       if constexpr (Kind::kQuantized) {
         for (int64_t g = 0; g < a.groups; ++g) {
-          const ActivationGroupParams params = quantize_group(values + g * group_size, group_columns(k, group_size, g),
-                                                              act_bits, codes.data() + g * group_size);
+          const int64_t columns = group_columns(k, group_size, g);
+          uint8_t* group_codes = codes.data() + g * group_size;
+          const ActivationGroupParams params = quantize_group(values + g * group_size, columns, act_bits, group_codes);
+          if constexpr (Kind::kCentered) {
+            // q_x - z_x as s8 bytes (the columns past k stay 0).
+            for (int64_t c = 0; c < columns; ++c) group_codes[c] = static_cast<uint8_t>(group_codes[c] - params.zero);
+          }
           a.zeros[r * a.groups + g] = static_cast<float>(params.zero);
           a.scales[r * a.groups + g] = params.scale;
         }
@@ -412,7 +448,7 @@ struct ScalarAmxPanel {
       }
       for (int64_t g = 0; g < panel_groups; ++g) {
         scales[g * kAmxPanelColumns + j] = all_scales[output * groups + first_group + g];
-        if constexpr (Kind::kQuantized) {
+        if constexpr (Kind::kWeightSums) {
           const int64_t first = col_begin + g * group_size, last = std::min(first + group_size, k);
           float sum = 0.0f;
           for (int64_t c = first; c < last; ++c) sum += static_cast<float>(weight_code(row, c));
@@ -426,6 +462,7 @@ struct ScalarAmxPanel {
 // totals[r][0..32) += one group's contribution for rows [0, rows), from the group's C tiles `group_sums`
 // (the epilogue, docs/numerics.md section 3):
 // - AmxInt8: P = sum q_x q_w - z_x sum q_w, exact in fp32 (integers below 2^24), times s_x s_w;
+// - AmxInt8Centered: P = the C tiles' sum (q_x - z_x) q_w, times s_x s_w;
 // - AmxBf16: the fp32 sums times s_w.
 // z_x and s_x of row r are zeros[r * params_stride] and row_scales[r * params_stride]. On AVX-512 the 32
 // outputs' factors stay in four registers over the rows; the scaling runs on the vector units beside the
@@ -436,7 +473,17 @@ void add_group_to_totals(const uint32_t (*group_sums)[kAmxPanelColumns], int64_t
                          const float* weight_sums, float* totals) {
 #if defined(DYQ_CPU_ISA_AVX512)
   const __m512 scales_low = _mm512_loadu_ps(weight_scales), scales_high = _mm512_loadu_ps(weight_scales + 16);
-  if constexpr (Kind::kQuantized) {
+  if constexpr (Kind::kCentered) {
+    for (int64_t r = 0; r < rows; ++r) {
+      const __m512 row_scale = _mm512_set1_ps(row_scales[r * params_stride]);
+      float* total = totals + r * kAmxPanelColumns;
+      const __m512 low = cvtepi32_ps(_mm512_load_si512(group_sums[r]));
+      const __m512 high = cvtepi32_ps(_mm512_load_si512(group_sums[r] + 16));
+      _mm512_storeu_ps(total, _mm512_fmadd_ps(low, _mm512_mul_ps(row_scale, scales_low), _mm512_loadu_ps(total)));
+      _mm512_storeu_ps(total + 16,
+                       _mm512_fmadd_ps(high, _mm512_mul_ps(row_scale, scales_high), _mm512_loadu_ps(total + 16)));
+    }
+  } else if constexpr (Kind::kQuantized) {
     const __m512 sums_low = _mm512_loadu_ps(weight_sums), sums_high = _mm512_loadu_ps(weight_sums + 16);
     for (int64_t r = 0; r < rows; ++r) {
       const __m512 zero = _mm512_set1_ps(zeros[r * params_stride]);
@@ -462,8 +509,9 @@ void add_group_to_totals(const uint32_t (*group_sums)[kAmxPanelColumns], int64_t
     float* total = totals + r * kAmxPanelColumns;
     for (int64_t j = 0; j < kAmxPanelColumns; ++j) {
       if constexpr (Kind::kQuantized) {
-        const float partial =
-            static_cast<float>(static_cast<int32_t>(group_sums[r][j])) - zeros[r * params_stride] * weight_sums[j];
+        // The centered codes' sums are P already: no z_x term.
+        const float partial = static_cast<float>(static_cast<int32_t>(group_sums[r][j])) -
+                              (Kind::kCentered ? 0.0f : zeros[r * params_stride] * weight_sums[j]);
         total[j] += partial * (row_scales[r * params_stride] * weight_scales[j]);
       } else {
         float sum;
@@ -481,8 +529,8 @@ void add_group_to_totals(const uint32_t (*group_sums)[kAmxPanelColumns], int64_t
 // (8 KiB) leave room in a 48 KiB L1 for the C tile buffers and the totals being scaled.
 constexpr int64_t kAmxPanelsPerPass = 2;
 
-// out = x W^T (+ bias) through the tile loop: AmxInt8 at act_bits 2/4/8, AmxBf16 at 16. Panel is
-// ScalarAmxPanel<Kind> or a packer of the same layout. Threads split the panels of 32 output rows; each
+// out = x W^T (+ bias) through the tile loop: AmxInt8Centered at act_bits 2/4, AmxInt8 at 8, AmxBf16 at 16.
+// Panel is ScalarAmxPanel<Kind> or a packer of the same layout. Threads split the panels of 32 output rows; each
 // configures its own tiles, takes its panels kAmxPanelsPerPass at a time, unpacks each slice of them once,
 // runs the slice against every activation row, and keeps the running totals of their outputs for all rows.
 template <typename Tiles, typename Kind, typename Panel, typename Element>

@@ -13,7 +13,10 @@ void amx_emulated_gemm(const float* x, const uint8_t* qweight, const float* scal
   if (act_bits == 16) {
     amx_gemm<EmulatedTiles, AmxBf16, ScalarAmxPanel<AmxBf16>>(x, qweight, scales, bias, m, n, k, group_size, act_bits,
                                                               out);
-  } else if (act_bits == 2 || act_bits == 4 || act_bits == 8) {
+  } else if (act_bits == 2 || act_bits == 4) {
+    amx_gemm<EmulatedTiles, AmxInt8Centered, ScalarAmxPanel<AmxInt8Centered>>(x, qweight, scales, bias, m, n, k,
+                                                                              group_size, act_bits, out);
+  } else if (act_bits == 8) {
     amx_gemm<EmulatedTiles, AmxInt8, ScalarAmxPanel<AmxInt8>>(x, qweight, scales, bias, m, n, k, group_size, act_bits,
                                                               out);
   } else {

@@ -654,7 +654,10 @@ struct WeightPanel {
     const int64_t quads_per_group = group_size / kQuadColumns;
     const __m512i ones = _mm512_set1_epi8(1);
     for (int half = 0; half < 2; ++half) {
-      __m512i sums = _mm512_setzero_si512();
+      // A running sum per step, so that consecutive vpdpbusd do not wait on each other (one chain of them set
+      // the pace of the whole packing); the group being summed, counted rather than divided out per quad.
+      __m512i sums[Kind::kSteps] = {};
+      int64_t sum_group = 0, quads_in_sums = 0;
       for (int64_t block = 0; block * kBlockColumns < depth; ++block) {
         const int64_t column = col_begin + block * kBlockColumns;
         const int64_t bytes = std::min<int64_t>(64, (k - column) / 2);
@@ -678,12 +681,15 @@ struct WeightPanel {
           Kind::steps(rows[q], quad_steps);
           for (int s = 0; s < Kind::kSteps; ++s) {
             _mm512_store_si512(&steps[(quad * Kind::kSteps + s) * kPanelColumns + 16 * half], quad_steps[s]);
-            if constexpr (Kind::kWeightSums) sums = _mm512_dpbusd_epi32(sums, ones, quad_steps[s]);
+            if constexpr (Kind::kWeightSums) sums[s] = _mm512_dpbusd_epi32(sums[s], ones, quad_steps[s]);
           }
           if constexpr (Kind::kWeightSums) {
-            if ((quad + 1) % quads_per_group == 0 || quad + 1 == quads) {
-              _mm512_store_ps(&weight_sums[quad / quads_per_group * kPanelColumns + 16 * half], cvtepi32_ps(sums));
-              sums = _mm512_setzero_si512();
+            if (++quads_in_sums == quads_per_group || quad + 1 == quads) {
+              __m512i group_sum = sums[0];
+              for (int s = 1; s < Kind::kSteps; ++s) group_sum = _mm512_add_epi32(group_sum, sums[s]);
+              _mm512_store_ps(&weight_sums[sum_group * kPanelColumns + 16 * half], cvtepi32_ps(group_sum));
+              for (__m512i& sum : sums) sum = _mm512_setzero_si512();
+              ++sum_group, quads_in_sums = 0;
             }
           }
         }
@@ -783,6 +789,10 @@ static_assert(kPanelColumns == kAmxPanelColumns && kPanelDepth == kAmxPanelDepth
               "the AMX tile loop reads the panels' layout");
 static_assert(VnniPanel::kSteps == AmxInt8::kStepsPerQuad && Bf16Panel::kSteps == AmxBf16::kStepsPerQuad,
               "the AMX tile loop reads the panels' layout");
+// The VNNI panel without the sums of q_w, which the centered codes of act_bits 2 and 4 do not need.
+struct VnniPanelUnsummed : VnniPanel {
+  static constexpr bool kWeightSums = false;
+};
 #endif
 
 template <int kBits, typename Element>
@@ -791,7 +801,13 @@ void gemm_typed(const Element* x, const uint8_t* qweight, const float* scales, c
   if constexpr (ActivationTraits<kBits>::kQuantized) {
 #if defined(DYQ_AVX512_HAS_AMX)
     if (m >= kAmxMinRows) {
-      amx_gemm<NativeTiles, AmxInt8, WeightPanel<VnniPanel>>(x, qweight, scales, bias, m, n, k, group_size, kBits, out);
+      if constexpr (kBits <= 4) {
+        amx_gemm<NativeTiles, AmxInt8Centered, WeightPanel<VnniPanelUnsummed>>(x, qweight, scales, bias, m, n, k,
+                                                                              group_size, kBits, out);
+      } else {
+        amx_gemm<NativeTiles, AmxInt8, WeightPanel<VnniPanel>>(x, qweight, scales, bias, m, n, k, group_size, kBits,
+                                                               out);
+      }
       return;
     }
 #endif
