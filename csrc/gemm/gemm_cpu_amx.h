@@ -11,9 +11,13 @@
 //   so that the C tiles hold P = sum (q_x - z_x) q_w itself, the same integer: the epilogue saves the
 //   z_x sum q_w term (a quarter of its vector work, which does not overlap the tile products) and the
 //   panels their sums of q_w.
-// - AmxBf16 (act_bits 16): tdpbf16ps of x rounded to bf16 (round to nearest even) with the weight codes
-//   as bf16 (exact), accumulated in fp32 per group and scaled by s_w, the numerics of the AVX512-BF16
-//   kernels. Like vdpbf16ps, tdpbf16ps treats bf16 denormals as 0 and flushes fp32 denormal results.
+// - AmxBf16 (act_bits 16): tdpbf16ps of x rounded to bf16 (round to nearest even) with the dequantized
+//   weights q_w s_w, formed in fp32 and rounded to bf16 when the panels are unpacked (products below fp32's
+//   normal range count as 0, as vcvtne2ps2bf16 reads them). Having no per-group scale left to apply, the
+//   C tiles accumulate a whole slice and are added to the running totals by the tile unit itself (tile
+//   loads and stores of the totals once per slice): neither the per-group tile stores nor the vector
+//   epilogue of the integer kinds, which together cost more than the bf16 products. Like vdpbf16ps,
+//   tdpbf16ps treats bf16 denormals as 0 and flushes fp32 denormal results.
 //
 // Weight panels. 32 output rows at a time, over a slice of kAmxPanelDepth columns, are unpacked once
 // into the layout of the AVX-512 panel path (gemm/gemm_cpu_avx512.h, WeightPanel): steps[quad][step][32]
@@ -24,8 +28,8 @@
 // - AmxInt8 has two steps per quad, the s8 codes of the even columns 8q, 8q + 2, 8q + 4, 8q + 6, then
 //   of the odd ones; the activation codes are stored in the same order within every 8 columns, so that
 //   A's dword i meets B's row i.
-// - AmxBf16 has four steps per quad, the bf16 pairs of columns (8q + 2b, 8q + 2b + 1), which is the
-//   natural order of x's bf16 pairs.
+// - AmxBf16 has four steps per quad, the bf16 pairs of columns (8q + 2b, 8q + 2b + 1) of q_w s_w, which is
+//   the natural order of x's bf16 pairs.
 // The native path unpacks with the AVX-512 panel packers, once per slice and panel for every activation
 // row, so that unpacking is a small share of the tile work (the scalar unpacking of every call's whole
 // weight matrix that came before cost more than the tile products themselves); the emulation unpacks the
@@ -51,6 +55,7 @@
 #include "cpu/isa_region.h"
 #include "cpu/x86_ops.h"
 #include "parallel/parallel.h"
+
 
 DYQ_ISA_BEGIN
 namespace dyq::cpu::DYQ_ISA_NAMESPACE {
@@ -82,6 +87,13 @@ inline float bf16_value(uint16_t bits) {
   return value;
 }
 
+// The bf16 bit pattern of a dequantized weight q_w s_w: the fp32 product rounded to nearest even, a product
+// below the smallest normal fp32 read as 0 (as vcvtne2ps2bf16, the packers' instruction, reads it).
+inline uint16_t dequantized_bf16_bits(int code, float scale) {
+  const float product = static_cast<float>(code) * scale;
+  return bf16_bits(std::fabs(product) < 1.17549435e-38f ? 0.0f : product);
+}
+
 // The int8 kinds: kCentered stores q_x - z_x as s8 (act_bits 2 and 4, whose codes and zero points are at
 // most 15) and multiplies with tdpbssd; otherwise u8 codes q_x with tdpbusd and z_x sum q_w in the epilogue.
 template <bool kCenteredCodes>
@@ -91,12 +103,14 @@ struct AmxInt8Kind {
   static constexpr bool kQuantized = true;     // codes with z_x and s_x
   static constexpr bool kCentered = kCenteredCodes;
   static constexpr bool kWeightSums = !kCenteredCodes;  // sum q_w per group, for the z_x term
+  static constexpr bool kDequantizedWeights = false;     // codes in the panels, scales in the epilogue
   // The A bytes of 8 columns from their codes: the even columns, then the odd ones.
   static void quad_bytes(const uint8_t* codes, uint8_t* out) {
     for (int i = 0; i < 4; ++i) out[i] = codes[2 * i], out[4 + i] = codes[2 * i + 1];
   }
-  // The dword of step s of quad q for one output row (packed weights `row`; columns past k are 0).
-  static uint32_t step_dword(const uint8_t* row, int64_t k, int64_t quad, int s) {
+  // The dword of step s of quad q for one output row (packed weights `row`; columns past k are 0); the
+  // codes themselves (the group's scale is applied in the epilogue).
+  static uint32_t step_dword(const uint8_t* row, int64_t k, int64_t quad, int s, float /*scale*/) {
     uint32_t dword = 0;
     for (int b = 0; b < 4; ++b) {
       const int64_t c = quad * kAmxQuadColumns + 2 * b + s;
@@ -123,6 +137,7 @@ struct AmxBf16 {
   static constexpr bool kQuantized = false;
   static constexpr bool kCentered = false;
   static constexpr bool kWeightSums = false;
+  static constexpr bool kDequantizedWeights = true;
   // The A bytes of 8 columns: their bf16 bit patterns, in column order.
   static void quad_bytes(const float* values, uint8_t* out) {
     for (int i = 0; i < 8; ++i) {
@@ -130,11 +145,12 @@ struct AmxBf16 {
       std::memcpy(out + 2 * i, &bits, 2);
     }
   }
-  static uint32_t step_dword(const uint8_t* row, int64_t k, int64_t quad, int s) {
+  // The bf16 pair of q_w s_w; `scale` is s_w of the quad's group (a group is a whole number of quads).
+  static uint32_t step_dword(const uint8_t* row, int64_t k, int64_t quad, int s, float scale) {
     uint32_t dword = 0;
     for (int b = 0; b < 2; ++b) {
       const int64_t c = quad * kAmxQuadColumns + 2 * s + b;
-      dword |= uint32_t{bf16_bits(static_cast<float>(c < k ? weight_code(row, c) : 0))} << (16 * b);
+      dword |= uint32_t{dequantized_bf16_bits(c < k ? weight_code(row, c) : 0, scale)} << (16 * b);
     }
     return dword;
   }
@@ -415,7 +431,8 @@ AmxActivations<Kind> amx_activations(const Element* x, int64_t m, int64_t k, int
 }
 
 // The panel layout in plain C++ (the emulation's unpacking; the native path uses the AVX-512 packers of
-// the same layout): the steps, each group's s_w and, for AmxInt8, sum q_w per output row.
+// the same layout): the steps (AmxBf16: of the dequantized weights), each group's s_w and, for AmxInt8,
+// sum q_w per output row.
 template <typename Kind>
 struct ScalarAmxPanel {
   static constexpr int64_t kQuads = kAmxPanelDepth / kAmxQuadColumns;
@@ -441,8 +458,9 @@ struct ScalarAmxPanel {
       }
       const uint8_t* row = qweight + output * (k / 2);
       for (int64_t quad = 0; quad * kAmxQuadColumns < depth; ++quad) {
+        const float quad_scale = all_scales[output * groups + (col_begin + quad * kAmxQuadColumns) / group_size];
         for (int s = 0; s < Kind::kStepsPerQuad; ++s) {
-          const uint32_t dword = Kind::step_dword(row, k, col_begin / kAmxQuadColumns + quad, s);
+          const uint32_t dword = Kind::step_dword(row, k, col_begin / kAmxQuadColumns + quad, s, quad_scale);
           std::memcpy(&steps[(quad * Kind::kStepsPerQuad + s) * kAmxPanelColumns + j], &dword, 4);
         }
       }
@@ -460,10 +478,9 @@ struct ScalarAmxPanel {
 };
 
 // totals[r][0..32) += one group's contribution for rows [0, rows), from the group's C tiles `group_sums`
-// (the epilogue, docs/numerics.md section 3):
+// (the epilogue of the int8 kinds, docs/numerics.md section 3):
 // - AmxInt8: P = sum q_x q_w - z_x sum q_w, exact in fp32 (integers below 2^24), times s_x s_w;
-// - AmxInt8Centered: P = the C tiles' sum (q_x - z_x) q_w, times s_x s_w;
-// - AmxBf16: the fp32 sums times s_w.
+// - AmxInt8Centered: P = the C tiles' sum (q_x - z_x) q_w, times s_x s_w.
 // z_x and s_x of row r are zeros[r * params_stride] and row_scales[r * params_stride]. On AVX-512 the 32
 // outputs' factors stay in four registers over the rows; the scaling runs on the vector units beside the
 // AMX unit's tile products, and it costs about as much as they do, so every instruction of it counts.
@@ -471,6 +488,7 @@ template <typename Kind>
 void add_group_to_totals(const uint32_t (*group_sums)[kAmxPanelColumns], int64_t rows, const float* zeros,
                          const float* row_scales, int64_t params_stride, const float* weight_scales,
                          const float* weight_sums, float* totals) {
+  static_assert(Kind::kQuantized, "AmxBf16 has no epilogue: its tiles accumulate into the totals");
 #if defined(DYQ_CPU_ISA_AVX512)
   const __m512 scales_low = _mm512_loadu_ps(weight_scales), scales_high = _mm512_loadu_ps(weight_scales + 16);
   if constexpr (Kind::kCentered) {
@@ -483,7 +501,7 @@ void add_group_to_totals(const uint32_t (*group_sums)[kAmxPanelColumns], int64_t
       _mm512_storeu_ps(total + 16,
                        _mm512_fmadd_ps(high, _mm512_mul_ps(row_scale, scales_high), _mm512_loadu_ps(total + 16)));
     }
-  } else if constexpr (Kind::kQuantized) {
+  } else {
     const __m512 sums_low = _mm512_loadu_ps(weight_sums), sums_high = _mm512_loadu_ps(weight_sums + 16);
     for (int64_t r = 0; r < rows; ++r) {
       const __m512 zero = _mm512_set1_ps(zeros[r * params_stride]);
@@ -495,39 +513,30 @@ void add_group_to_totals(const uint32_t (*group_sums)[kAmxPanelColumns], int64_t
       _mm512_storeu_ps(total + 16,
                        _mm512_fmadd_ps(high, _mm512_mul_ps(row_scale, scales_high), _mm512_loadu_ps(total + 16)));
     }
-  } else {
-    for (int64_t r = 0; r < rows; ++r) {
-      float* total = totals + r * kAmxPanelColumns;
-      const __m512 low = _mm512_castsi512_ps(_mm512_load_si512(group_sums[r]));
-      const __m512 high = _mm512_castsi512_ps(_mm512_load_si512(group_sums[r] + 16));
-      _mm512_storeu_ps(total, _mm512_fmadd_ps(low, scales_low, _mm512_loadu_ps(total)));
-      _mm512_storeu_ps(total + 16, _mm512_fmadd_ps(high, scales_high, _mm512_loadu_ps(total + 16)));
-    }
   }
 #else
   for (int64_t r = 0; r < rows; ++r) {
     float* total = totals + r * kAmxPanelColumns;
     for (int64_t j = 0; j < kAmxPanelColumns; ++j) {
-      if constexpr (Kind::kQuantized) {
-        // The centered codes' sums are P already: no z_x term.
-        const float partial = static_cast<float>(static_cast<int32_t>(group_sums[r][j])) -
-                              (Kind::kCentered ? 0.0f : zeros[r * params_stride] * weight_sums[j]);
-        total[j] += partial * (row_scales[r * params_stride] * weight_scales[j]);
-      } else {
-        float sum;
-        std::memcpy(&sum, &group_sums[r][j], 4);
-        total[j] += sum * weight_scales[j];
-      }
+      // The centered codes' sums are P already: no z_x term.
+      const float partial = static_cast<float>(static_cast<int32_t>(group_sums[r][j])) -
+                            (Kind::kCentered ? 0.0f : zeros[r * params_stride] * weight_sums[j]);
+      total[j] += partial * (row_scales[r * params_stride] * weight_scales[j]);
     }
   }
 #endif
 }
 
 // Panels unpacked per pass over the activations: each block of 32 activation rows is run against every
-// panel of the pass while its A tiles are in the L1 cache, instead of coming from L2 once per panel (the
-// activations of a slice for 256 rows are 64 KiB). Two panels' slices (2 x 8 KiB) and a block's A steps
-// (8 KiB) leave room in a 48 KiB L1 for the C tile buffers and the totals being scaled.
-constexpr int64_t kAmxPanelsPerPass = 2;
+// panel of the pass while its A tiles are in the L1 cache, instead of coming from L2 once per panel, and
+// each pass reads all the activations once (for 256 rows of k = 4096, 1 MiB of int8 codes, 2 MiB of bf16:
+// as much as a core's L2, so that more panels per pass mean fewer reads of them from L3). Int8: two panels'
+// slices (2 x 8 KiB) and a block's A steps (8 KiB) leave room in a 48 KiB L1 for the C tile buffers and the
+// totals being scaled. AmxBf16 has no epilogue to keep in L1: its panels' slices (16 KiB each) come from
+// L2, and eight of them quarter the passes over its 2 MiB of activations (at 256 rows, 4096 x 4096, one
+// thread, about 9.0 -> 7.9 ms; two panels per pass stay faster for the int8 kinds).
+template <typename Kind>
+constexpr int64_t kAmxPanelsPerPass = Kind::kDequantizedWeights ? 8 : 2;
 
 // out = x W^T (+ bias) through the tile loop: AmxInt8Centered at act_bits 2/4, AmxInt8 at 8, AmxBf16 at 16.
 // Panel is ScalarAmxPanel<Kind> or a packer of the same layout. Threads split the panels of 32 output rows; each
@@ -536,10 +545,12 @@ constexpr int64_t kAmxPanelsPerPass = 2;
 template <typename Tiles, typename Kind, typename Panel, typename Element>
 void amx_gemm(const Element* x, const uint8_t* qweight, const float* scales, const Element* bias, int64_t m, int64_t n,
               int64_t k, int group_size, int act_bits, Element* out) {
+  constexpr int64_t kPanelsPerPass = kAmxPanelsPerPass<Kind>;
   const AmxActivations<Kind> a = amx_activations<Kind>(x, m, k, group_size, act_bits);
   const int64_t step_bytes = a.step_bytes;
   const int64_t step_columns = a.step_columns();
   constexpr int64_t kBStride = kAmxPanelColumns * 4;  // bytes of one B row: a dword per output
+  constexpr int64_t kTotalsStride = kAmxPanelColumns * 4;  // bytes of one row of a panel's totals
   // Everything the loops step by, computed once: a division per group cost as much as a tile product.
   const int64_t steps_per_group = group_size / step_columns;
   const int64_t groups_per_slice = kAmxPanelDepth / group_size;
@@ -549,34 +560,24 @@ void amx_gemm(const Element* x, const uint8_t* qweight, const float* scales, con
   parallel_for(0, panels, 1, [&](int64_t panel_begin, int64_t panel_end) {
     Tiles tiles;
     tiles.configure(step_bytes);
-    Panel pass_panels[kAmxPanelsPerPass];
-    // The C tiles of a group go to one of two buffers, and the previous group's are scaled into the totals
-    // after the next group's tile products are issued: the AMX unit works through those while the vector
-    // units scale, which would otherwise take turns (the scaling costs about as much as the products).
+    Panel pass_panels[kPanelsPerPass];
+    // The int8 kinds' C tiles of a group go to one of two buffers, and the previous group's are scaled into
+    // the totals after the next group's tile products are issued: the AMX unit works through those while
+    // the vector units scale, which would otherwise take turns (the scaling costs about as much as the products).
     alignas(64) uint32_t sums[2][kAmxRowBlock][kAmxPanelColumns];
     struct Pending {
       int64_t row_begin = -1, rows = 0, group = 0, global_group = 0;  // group: within the slice
       int panel = 0;                                                  // within the pass
     } pending;
-    std::vector<float> totals(kAmxPanelsPerPass * a.rows * kAmxPanelColumns);  // [panel][row][32]
+    std::vector<float> totals(kPanelsPerPass * a.rows * kAmxPanelColumns);  // [panel][row][32]
     int64_t pass_begin = panel_begin;
-    // Adds a group's contribution to the totals of its block of rows.
-    auto scale_into_totals = [&](const Pending& job, const uint32_t (*group_sums)[kAmxPanelColumns]) {
-      const Panel& panel = pass_panels[job.panel];
-      float* block_totals = &totals[(job.panel * a.rows + job.row_begin) * kAmxPanelColumns];
-      const float* weight_sums = Kind::kQuantized ? &panel.weight_sums[job.group * kAmxPanelColumns] : nullptr;
-      const float* zeros = Kind::kQuantized ? &a.zeros[job.row_begin * a.groups + job.global_group] : nullptr;
-      const float* row_scales = Kind::kQuantized ? &a.scales[job.row_begin * a.groups + job.global_group] : nullptr;
-      add_group_to_totals<Kind>(group_sums, job.rows, zeros, row_scales, a.groups,
-                                &panel.scales[job.group * kAmxPanelColumns], weight_sums, block_totals);
-      if (job.global_group + 1 < a.groups) return;
-      // The rows' last group: their outputs (plus the bias), written while the totals are in L1, and spread
-      // over the last slice's tile work instead of in one burst at the end.
-      const int64_t weight_row = (pass_begin + job.panel) * kAmxPanelColumns;
+    // The outputs (plus the bias) of a block of rows from its finished totals.
+    auto write_outputs = [&](int panel, int64_t row_begin, int64_t rows, const float* block_totals) {
+      const int64_t weight_row = (pass_begin + panel) * kAmxPanelColumns;
       const int64_t columns = std::min(kAmxPanelColumns, n - weight_row);
-      for (int64_t r = 0; r < job.rows; ++r) {
+      for (int64_t r = 0; r < rows; ++r) {
         const float* total = block_totals + r * kAmxPanelColumns;
-        Element* out_row = out + (job.row_begin + r) * n + weight_row;
+        Element* out_row = out + (row_begin + r) * n + weight_row;
         if (bias != nullptr) {
           for (int64_t j = 0; j < columns; ++j) out_row[j] = from_float<Element>(total[j] + to_float(bias[weight_row + j]));
         } else {
@@ -584,12 +585,27 @@ void amx_gemm(const Element* x, const uint8_t* qweight, const float* scales, con
         }
       }
     };
-    for (; pass_begin < panel_end; pass_begin += kAmxPanelsPerPass) {
-      const int pass_count = static_cast<int>(std::min(kAmxPanelsPerPass, panel_end - pass_begin));
+    // Adds a group's contribution to the totals of its block of rows (the int8 kinds).
+    auto scale_into_totals = [&](const Pending& job, const uint32_t (*group_sums)[kAmxPanelColumns]) {
+      if constexpr (Kind::kQuantized) {
+      const Panel& panel = pass_panels[job.panel];
+      float* block_totals = &totals[(job.panel * a.rows + job.row_begin) * kAmxPanelColumns];
+      add_group_to_totals<Kind>(group_sums, job.rows, &a.zeros[job.row_begin * a.groups + job.global_group],
+                                &a.scales[job.row_begin * a.groups + job.global_group], a.groups,
+                                &panel.scales[job.group * kAmxPanelColumns],
+                                &panel.weight_sums[job.group * kAmxPanelColumns], block_totals);
+      // The rows' last group: their outputs, written while the totals are in L1, and spread over the last
+      // slice's tile work instead of in one burst at the end.
+      if (job.global_group + 1 == a.groups) write_outputs(job.panel, job.row_begin, job.rows, block_totals);
+      }
+    };
+    for (; pass_begin < panel_end; pass_begin += kPanelsPerPass) {
+      const int pass_count = static_cast<int>(std::min(kPanelsPerPass, panel_end - pass_begin));
       std::fill(totals.begin(), totals.end(), 0.0f);
       for (int64_t slice = 0, slice_group = 0; slice < k; slice += kAmxPanelDepth, slice_group += groups_per_slice) {
         const int64_t depth = std::min(kAmxPanelDepth, k - slice);
         const int64_t slice_groups = group_count(depth, group_size);
+        const bool last_slice = slice + kAmxPanelDepth >= k;
         for (int i = 0; i < pass_count; ++i) {
           pass_panels[i].pack(qweight, scales, n, k, group_size, (pass_begin + i) * kAmxPanelColumns, slice, depth);
         }
@@ -604,34 +620,57 @@ void amx_gemm(const Element* x, const uint8_t* qweight, const float* scales, con
             // left there adds nothing.
             const uint8_t* a_tile = a_steps;
             const uint8_t* b_tile = b_steps;
-            for (int64_t group = 0; group < slice_groups; ++group) {
-              tiles.template zero<0>();
-              tiles.template zero<1>();
-              tiles.template zero<2>();
-              tiles.template zero<3>();
-              for (int64_t step = 0; step < steps_per_group; ++step, a_tile += a_step_bytes, b_tile += b_step_bytes) {
-                tiles.template load<4>(a_tile, step_bytes);
-                tiles.template load<5>(a_tile + kAmxTileRows * step_bytes, step_bytes);
-                tiles.template load<6>(b_tile, kBStride);
-                tiles.template load<7>(b_tile + 64, kBStride);
-                Kind::template product<0, 4, 6>(tiles);
-                Kind::template product<1, 4, 7>(tiles);
-                Kind::template product<2, 5, 6>(tiles);
-                Kind::template product<3, 5, 7>(tiles);
+            // One step of the 2 x 2 tiles, each operand loaded just before its first product.
+            auto step = [&] {
+              tiles.template load<4>(a_tile, step_bytes);
+              tiles.template load<6>(b_tile, kBStride);
+              Kind::template product<0, 4, 6>(tiles);
+              tiles.template load<7>(b_tile + 64, kBStride);
+              Kind::template product<1, 4, 7>(tiles);
+              tiles.template load<5>(a_tile + kAmxTileRows * step_bytes, step_bytes);
+              Kind::template product<2, 5, 6>(tiles);
+              Kind::template product<3, 5, 7>(tiles);
+              a_tile += a_step_bytes;
+              b_tile += b_step_bytes;
+            };
+            if constexpr (Kind::kDequantizedWeights) {
+              // The block's totals are the C tiles' starting values: the slice's products accumulate onto them.
+              float* block_totals = &totals[(i * a.rows + row_begin) * kAmxPanelColumns];
+              uint8_t* block_bytes = reinterpret_cast<uint8_t*>(block_totals);
+              constexpr int64_t kLowerHalf = kAmxTileRows * kTotalsStride, kRightHalf = 64;
+              tiles.template load<0>(block_bytes, kTotalsStride);
+              tiles.template load<1>(block_bytes + kRightHalf, kTotalsStride);
+              tiles.template load<2>(block_bytes + kLowerHalf, kTotalsStride);
+              tiles.template load<3>(block_bytes + kLowerHalf + kRightHalf, kTotalsStride);
+              for (int64_t s = 0, steps = slice_groups * steps_per_group; s < steps; ++s) step();
+              tiles.template store<0>(block_bytes, kTotalsStride);
+              tiles.template store<1>(block_bytes + kRightHalf, kTotalsStride);
+              tiles.template store<2>(block_bytes + kLowerHalf, kTotalsStride);
+              tiles.template store<3>(block_bytes + kLowerHalf + kRightHalf, kTotalsStride);
+              if (last_slice) write_outputs(i, row_begin, std::min(kAmxRowBlock, m - row_begin), block_totals);
+            } else {
+              for (int64_t group = 0; group < slice_groups; ++group) {
+                tiles.template zero<0>();
+                tiles.template zero<1>();
+                tiles.template zero<2>();
+                tiles.template zero<3>();
+                for (int64_t s = 0; s < steps_per_group; ++s) step();
+                if (pending.row_begin >= 0) scale_into_totals(pending, sums[buffer ^ 1]);
+                tiles.template store<0>(&sums[buffer][0][0], kBStride);
+                tiles.template store<1>(&sums[buffer][0][16], kBStride);
+                tiles.template store<2>(&sums[buffer][16][0], kBStride);
+                tiles.template store<3>(&sums[buffer][16][16], kBStride);
+                pending = {row_begin, std::min(kAmxRowBlock, m - row_begin), group, slice_group + group, i};
+                buffer ^= 1;
               }
-              if (pending.row_begin >= 0) scale_into_totals(pending, sums[buffer ^ 1]);
-              tiles.template store<0>(&sums[buffer][0][0], kBStride);
-              tiles.template store<1>(&sums[buffer][0][16], kBStride);
-              tiles.template store<2>(&sums[buffer][16][0], kBStride);
-              tiles.template store<3>(&sums[buffer][16][16], kBStride);
-              pending = {row_begin, std::min(kAmxRowBlock, m - row_begin), group, slice_group + group, i};
-              buffer ^= 1;
             }
           }
         }
-        // The slice's last group, before the next slice is packed over its scales.
-        scale_into_totals(pending, sums[buffer ^ 1]);
-        pending = {};
+        if constexpr (!Kind::kDequantizedWeights) {
+          // The slice's last group, before the next slice is packed over its scales.
+          scale_into_totals(pending, sums[buffer ^ 1]);
+          pending = {};
+        }
       }
     }
     tiles.release();

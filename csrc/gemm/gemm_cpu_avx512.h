@@ -565,6 +565,7 @@ inline void transpose_16x16_dwords(__m512i rows[16]) {
 struct VnniPanel {
   static constexpr int kSteps = 2;
   static constexpr bool kWeightSums = true;
+  static constexpr bool kScaledSteps = false;  // steps of the codes (scales in the epilogue)
   using Row = const QuantizedBlock*;
   using Accumulator = __m512i;
   static const char* name() { return "vnni"; }
@@ -592,6 +593,7 @@ struct VnniPanel {
 struct Bf16Panel {
   static constexpr int kSteps = 4;
   static constexpr bool kWeightSums = false;
+  static constexpr bool kScaledSteps = false;  // steps of the codes (scales in the epilogue)
   using Row = const uint16_t*;
   using Accumulator = __m512;
   static const char* name() { return "bf16"; }
@@ -619,6 +621,7 @@ struct Bf16Panel {
 struct Fp32Panel {
   static constexpr int kSteps = 8;
   static constexpr bool kWeightSums = false;
+  static constexpr bool kScaledSteps = false;  // steps of the codes (scales in the epilogue)
   using Row = const float*;
   using Accumulator = __m512;
   static const char* name() { return "fp32"; }
@@ -652,6 +655,14 @@ struct WeightPanel {
     const int64_t groups = group_count(k, group_size);
     const int64_t quads = (depth + kQuadColumns - 1) / kQuadColumns;
     const int64_t quads_per_group = group_size / kQuadColumns;
+    const int64_t first_group = col_begin / group_size;
+    const int64_t panel_groups = group_count(depth, group_size);
+    for (int64_t j = 0; j < kPanelColumns; ++j) {
+      const int64_t row = row_begin + j;
+      for (int64_t g = 0; g < panel_groups; ++g) {
+        scales[g * kPanelColumns + j] = row < n ? all_scales[row * groups + first_group + g] : 0.0f;
+      }
+    }
     const __m512i ones = _mm512_set1_epi8(1);
     for (int half = 0; half < 2; ++half) {
       // A running sum per step, so that consecutive vpdpbusd do not wait on each other (one chain of them set
@@ -678,7 +689,11 @@ struct WeightPanel {
         for (int64_t q = 0; q < 16 && block * 16 + q < quads; ++q) {
           const int64_t quad = block * 16 + q;
           __m512i quad_steps[Kind::kSteps];
-          Kind::steps(rows[q], quad_steps);
+          if constexpr (Kind::kScaledSteps) {
+            Kind::steps(rows[q], _mm512_load_ps(&scales[quad / quads_per_group * kPanelColumns + 16 * half]), quad_steps);
+          } else {
+            Kind::steps(rows[q], quad_steps);
+          }
           for (int s = 0; s < Kind::kSteps; ++s) {
             _mm512_store_si512(&steps[(quad * Kind::kSteps + s) * kPanelColumns + 16 * half], quad_steps[s]);
             if constexpr (Kind::kWeightSums) sums[s] = _mm512_dpbusd_epi32(sums[s], ones, quad_steps[s]);
@@ -693,14 +708,6 @@ struct WeightPanel {
             }
           }
         }
-      }
-    }
-    const int64_t first_group = col_begin / group_size;
-    const int64_t panel_groups = group_count(depth, group_size);
-    for (int64_t j = 0; j < kPanelColumns; ++j) {
-      const int64_t row = row_begin + j;
-      for (int64_t g = 0; g < panel_groups; ++g) {
-        scales[g * kPanelColumns + j] = row < n ? all_scales[row * groups + first_group + g] : 0.0f;
       }
     }
   }
@@ -787,12 +794,35 @@ constexpr int64_t kPanelMinRows = 8;
 constexpr int64_t kAmxMinRows = 16;
 static_assert(kPanelColumns == kAmxPanelColumns && kPanelDepth == kAmxPanelDepth && kQuadColumns == kAmxQuadColumns,
               "the AMX tile loop reads the panels' layout");
-static_assert(VnniPanel::kSteps == AmxInt8::kStepsPerQuad && Bf16Panel::kSteps == AmxBf16::kStepsPerQuad,
-              "the AMX tile loop reads the panels' layout");
 // The VNNI panel without the sums of q_w, which the centered codes of act_bits 2 and 4 do not need.
 struct VnniPanelUnsummed : VnniPanel {
   static constexpr bool kWeightSums = false;
 };
+
+// AmxBf16's panel: the bf16 pairs of Bf16Panel's layout, of the dequantized weights q_w s_w (the product in
+// fp32, rounded to nearest even by vcvtne2ps2bf16, which reads a product below fp32's normal range as 0).
+struct DequantizedBf16Panel {
+  static constexpr int kSteps = 4;
+  static constexpr bool kWeightSums = false;
+  static constexpr bool kScaledSteps = true;
+  // `scales`: s_w of the 16 rows, for the quad's group. vpermps reads only an index's low 4 bits, so one
+  // shift puts a nibble where it looks up its code.
+  static void steps(__m512i quad, __m512 scales, __m512i* out) {
+    alignas(64) static constexpr float kCodes[16] = {0, 1, 2, 3, 4, 5, 6, 7, -8, -7, -6, -5, -4, -3, -2, -1};
+    const __m512 codes = _mm512_load_ps(kCodes);
+    // Dword i of the result: word i (the even column) and word 16 + i (the odd one) of vcvtne2ps2bf16's.
+    const __m512i interleave = _mm512_set_epi16(31, 15, 30, 14, 29, 13, 28, 12, 27, 11, 26, 10, 25, 9, 24, 8, 23, 7,
+                                                22, 6, 21, 5, 20, 4, 19, 3, 18, 2, 17, 1, 16, 0);
+    for (int b = 0; b < 4; ++b) {
+      const __m512 even = _mm512_mul_ps(_mm512_maskz_permutexvar_ps(kAll16, srli_epi32(quad, 8 * b), codes), scales);
+      const __m512 odd = _mm512_mul_ps(_mm512_maskz_permutexvar_ps(kAll16, srli_epi32(quad, 8 * b + 4), codes), scales);
+      const __m512i words = reinterpret_cast<__m512i>(_mm512_cvtne2ps_pbh(odd, even));
+      out[b] = _mm512_permutexvar_epi16(interleave, words);
+    }
+  }
+};
+static_assert(VnniPanel::kSteps == AmxInt8::kStepsPerQuad && DequantizedBf16Panel::kSteps == AmxBf16::kStepsPerQuad,
+              "the AMX tile loop reads the panels' layout");
 #endif
 
 template <int kBits, typename Element>
@@ -827,7 +857,7 @@ void gemm_typed(const Element* x, const uint8_t* qweight, const float* scales, c
   } else {
 #if defined(DYQ_AVX512_HAS_AMX)
     if (m >= kAmxMinRows) {
-      amx_gemm<NativeTiles, AmxBf16, WeightPanel<Bf16Panel>>(x, qweight, scales, bias, m, n, k, group_size, kBits, out);
+      amx_gemm<NativeTiles, AmxBf16, WeightPanel<DequantizedBf16Panel>>(x, qweight, scales, bias, m, n, k, group_size, kBits, out);
       return;
     }
 #endif
@@ -871,7 +901,7 @@ void gemm_typed(const Element* x, const uint8_t* qweight, const float* scales, c
 inline const char* gemm_kernel(int64_t m, int64_t, int, int act_bits) {
   const bool panel = m >= kPanelMinRows;
 #if defined(DYQ_AVX512_HAS_AMX)
-  if (m >= kAmxMinRows) return act_bits != kFallbackBits ? DYQ_ISA_NAME "/tiles-amx-int8" : DYQ_ISA_NAME "/tiles-amx-bf16";
+  if (m >= kAmxMinRows) return act_bits != kFallbackBits ? DYQ_ISA_NAME "/tiles-amx-int8" : DYQ_ISA_NAME "/tiles-amx-bf16-dequantized";
 #endif
   if (act_bits != kFallbackBits) return panel ? DYQ_ISA_NAME "/panel-vnni" : DYQ_ISA_NAME "/rows-vnni";
 #if defined(DYQ_AVX512_HAS_BF16)
