@@ -16,7 +16,7 @@ pytestmark = pytest.mark.cuda
 ACT_BITS = dyq.VALID_BITS  # every registered width
 GROUP_SIZES = dyq.GROUP_SIZES
 QUANTIZED_BITS = dyq.core.precision.QUANTIZED_BITS
-ROWS = (1, 3, 16, 17, 128, 300)  # decode (<= 16) and prefill (> 16) paths, with partial tiles
+ROWS = (1, 3, 8, 9, 17, 128, 300)  # decode (<= 8) and prefill (> 8) paths, with partial tiles
 N_ODD = 200                      # not a multiple of the 16-row decode block or the 128-column prefill tile
 
 

@@ -79,7 +79,7 @@ __global__ void __launch_bounds__(kThreads)
   __shared__ int bits_shared;
   if (threadIdx.x == 0) {
     bits_shared = read_precision(precision);
-    if (blockIdx.x == 0) *out.bits_used = bits_shared;
+    if (blockIdx.x == 0 && precision.flag != out.bits_used) *out.bits_used = bits_shared;
   }
   __syncthreads();
   dispatch_act_bits(

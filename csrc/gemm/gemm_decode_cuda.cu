@@ -1,5 +1,5 @@
-// The decode path (m <= 16 rows): a GEMV that streams the packed INT4 weights once, at memory speed,
-// with the activation quantization fused in.
+// The decode path (m <= kDecodeMaxRows = 8 rows): a GEMV that streams the packed INT4 weights once, at
+// memory speed, with the activation quantization fused in.
 //
 // Thread mapping. A block of 4 warps owns 16 consecutive weight rows (outputs n), 4 per warp. A lane
 // reads 32 consecutive columns of a row with one 16-byte load of the canonical packed layout
@@ -15,7 +15,7 @@
 // Integer paths (A2, A4, A8): an INT4 word (8 columns) splits into s8x4 words of its even and odd
 // columns; x's codes are staged as unsigned bytes in the same even/odd order; `dp4a.u32.s32` forms
 // sum q_x q_w exactly and the zero point comes off as z * sum q_w (docs/numerics.md, section 3). The
-// bit-width changes only the quantizer: at m <= 16 the weights are the bytes that matter.
+// bit-width changes only the quantizer: at m <= 8 the weights are the bytes that matter.
 // BF16 path (A16): each nibble becomes an exact fp32 from its bit pattern; fp32 FMAs against x rounded
 // to bf16 (the rounding the prefill path's bf16 tensor cores impose, so both paths agree).
 #include "activation/act_quant_cuda.cuh"
@@ -234,13 +234,20 @@ cudaError_t launch_decode(const GemmArgs& a, cudaStream_t stream) {
 
 }  // namespace
 
-cudaError_t gemm_decode(const GemmArgs& a, cudaStream_t stream) {
-  if (a.m == 0 || a.n == 0) return cudaSuccess;
+cudaError_t gemm_decode(const GemmArgs& args, cudaStream_t stream) {
+  if (args.m == 0 || args.n == 0) return cudaSuccess;
+  if (args.m > kDecodeMaxRows) return cudaErrorInvalidValue;
+  GemmArgs a = args;
+  if (a.precision.flag != nullptr) {
+    if (a.workspace == nullptr) return cudaErrorInvalidValue;  // gemm_workspace_bytes(..., true) bytes
+    a.precision = snapshot_precision(a.precision, static_cast<int32_t*>(a.workspace), stream);
+  }
   if (a.m == 1) return launch_decode<1>(a, stream);
   if (a.m <= 2) return launch_decode<2>(a, stream);
   if (a.m <= 4) return launch_decode<4>(a, stream);
+  static_assert(kDecodeMaxRows == 8, "one instantiation per row count up to kDecodeMaxRows");
   if (a.m <= 8) return launch_decode<8>(a, stream);
-  return launch_decode<16>(a, stream);
+  return cudaErrorInvalidValue;  // more rows take the prefill path
 }
 
 }  // namespace dyq::cuda

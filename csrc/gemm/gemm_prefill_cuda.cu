@@ -430,8 +430,8 @@ PreparedActivations workspace_layout(void* workspace, int64_t m, int64_t k, int 
 
 }  // namespace
 
-int64_t gemm_workspace_bytes(int64_t m, int64_t k, int group_size) {
-  if (m <= kDecodeMaxRows) return 0;
+int64_t gemm_workspace_bytes(int64_t m, int64_t k, int group_size, bool flag_routed) {
+  if (m <= kDecodeMaxRows) return flag_routed ? kWorkspaceAlign : 0;
   int64_t total = 0;
   workspace_layout(nullptr, m, k, group_size, &total);
   return total;
@@ -442,7 +442,11 @@ cudaError_t gemm_prefill(const GemmArgs& a, cudaStream_t stream) {
   const int64_t blocks_m = (a.m + kBlockM - 1) / kBlockM;
   if (blocks_m > 65535) return cudaErrorInvalidValue;
   const PreparedActivations prepared = workspace_layout(a.workspace, a.m, a.k, a.group_size, nullptr);
-  const cudaError_t err = prepare_activations(a.x, a.dtype, a.m, a.k, a.group_size, a.precision, prepared, stream);
+  // A flag is read once, into bits_used, which the prepare kernel's blocks then read from device memory.
+  const Precision precision = a.precision.flag != nullptr
+                                  ? snapshot_precision(a.precision, prepared.bits_used, stream)
+                                  : a.precision;
+  const cudaError_t err = prepare_activations(a.x, a.dtype, a.m, a.k, a.group_size, precision, prepared, stream);
   if (err != cudaSuccess) return err;
   const dim3 grid(static_cast<unsigned>((a.n + kBlockN - 1) / kBlockN), static_cast<unsigned>(blocks_m));
   gemm_prefill_kernel<<<grid, kThreads, 0, stream>>>(a, prepared);

@@ -146,7 +146,8 @@ struct CudaGemm {
     const at::Tensor qweight_c = aligned_contiguous(qweight);
     const at::Tensor bias_c = bias.has_value() ? bias->contiguous() : at::Tensor();
     // Scratch from the caching allocator: stream-ordered, and drawn from the graph's pool under capture.
-    const int64_t workspace_bytes = cuda::gemm_workspace_bytes(m, k, static_cast<int>(group_size));
+    const int64_t workspace_bytes =
+        cuda::gemm_workspace_bytes(m, k, static_cast<int>(group_size), precision.flag != nullptr);
     const at::Tensor workspace =
         workspace_bytes > 0 ? at::empty({workspace_bytes}, x.options().dtype(at::kByte)) : at::Tensor();
     cuda::GemmArgs args{};
