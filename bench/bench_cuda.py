@@ -14,7 +14,9 @@ from __future__ import annotations
 
 import argparse
 import re
+import statistics
 import sys
+import time
 from pathlib import Path
 
 import torch
@@ -23,7 +25,7 @@ import dyq
 from dyq.results import cuda_median_ms, environment, write_json
 
 SHAPES = ((4096, 4096), (12288, 4096), (22016, 4096), (4096, 11008))  # (N, K): qkv/o, fused qkv, gate+up, down
-ROWS = (1, 4, 16, 64, 256, 512)
+ROWS = (1, 4, 8, 16, 64, 256, 512)
 GROUP_SIZE = 128
 
 
@@ -112,6 +114,62 @@ def bench_shape(n: int, k: int, rows, warmup: int, repeats: int, copy_gbs: float
 COLUMNS = tuple(f"dyq_a{bits}" for bits in dyq.VALID_BITS) + ("cublas_bf16", "torch_int4_weight_only")
 
 
+def graph_flag_switching(m: int, n: int, k: int, layers: int, warmup: int, repeats: int) -> dict:
+    """A chain of `layers` flag-routed layers captured once in a CUDA graph and replayed as a control loop
+    would: write the pinned flag, replay, synchronize. Times steps under each fixed flag value and steps
+    whose flag changes every time (cycling through the widths); the difference is what switching costs.
+    Also checks that a replay under each value equals the eager layers at that width."""
+    flag = torch.empty(1, dtype=torch.int32, pin_memory=True)
+    flag[0] = 16
+    chain = []
+    for _ in range(layers):
+        w = (torch.randn(n, k, device="cuda") * 0.02).to(torch.bfloat16)
+        chain.append(torch.ops.dyq.quantize_weight(w, GROUP_SIZE))
+    x = torch.randn(m, k, device="cuda").to(torch.bfloat16)
+
+    def forward():
+        h = x
+        for qweight, scales in chain:
+            h = torch.ops.dyq.gemm_with_flag(h, qweight, scales, GROUP_SIZE, flag)
+        return h
+
+    stream = torch.cuda.Stream()
+    stream.wait_stream(torch.cuda.current_stream())
+    with torch.cuda.stream(stream):
+        forward()
+    torch.cuda.current_stream().wait_stream(stream)
+    graph = torch.cuda.CUDAGraph()
+    with torch.cuda.graph(graph):
+        captured = forward()
+
+    matches = {}
+    for bits in dyq.VALID_BITS:
+        flag[0] = bits
+        graph.replay()
+        torch.cuda.synchronize()
+        h = x
+        for qweight, scales in chain:
+            h = torch.ops.dyq.gemm(h, qweight, scales, GROUP_SIZE, bits)
+        matches[bits] = bool(torch.equal(captured, h))
+
+    def step_ms(bit_sequence) -> float:
+        times = []
+        for i, bits in enumerate(bit_sequence):
+            start = time.perf_counter()
+            flag[0] = bits
+            graph.replay()
+            torch.cuda.synchronize()
+            if i >= warmup:
+                times.append((time.perf_counter() - start) * 1e3)
+        return statistics.median(times)
+
+    count = warmup + repeats
+    fixed = {bits: step_ms([bits] * count) for bits in dyq.VALID_BITS}
+    switching = step_ms([dyq.VALID_BITS[i % len(dyq.VALID_BITS)] for i in range(count)])
+    return {"m": m, "n": n, "k": k, "layers": layers, "replay_equals_eager": matches,
+            "fixed_flag_step_ms": fixed, "switching_flag_step_ms": switching}
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--quick", action="store_true", help="first shape only, fewer repeats")
@@ -130,13 +188,22 @@ def main() -> int:
     print("  ".join(header))
     results, table = [], []
     shapes = SHAPES[:1] if args.quick else SHAPES
+    name = re.sub(r"[^A-Za-z0-9]+", "_", info["gpu"]).strip("_").lower()
+    report = {"benchmark": "cuda", "environment": info, "copy_gbs": copy_gbs, "warmup": warmup,
+              "repeats": repeats, "group_size": GROUP_SIZE, "shapes": [list(s) for s in shapes],
+              "rows": list(ROWS), "results": results}
     for n, k in shapes:
         bench_shape(n, k, ROWS, warmup, repeats, copy_gbs, results, table)
-    name = re.sub(r"[^A-Za-z0-9]+", "_", info["gpu"]).strip("_").lower()
-    path = write_json(args.out / f"cuda_{name}.json",
-                      {"benchmark": "cuda", "environment": info, "copy_gbs": copy_gbs, "warmup": warmup,
-                       "repeats": repeats, "group_size": GROUP_SIZE, "shapes": [list(s) for s in shapes],
-                       "rows": list(ROWS), "results": results})
+        path = write_json(args.out / f"cuda_{name}.json", report)  # after each shape: a cut-off run keeps it
+    print("CUDA graph of 4 flag-routed 4096 x 4096 layers: write flag, replay, synchronize (median ms per step)")
+    report["graph_flag_switching"] = []
+    for m in (1, 64):
+        entry = graph_flag_switching(m, 4096, 4096, 4, warmup, repeats)
+        report["graph_flag_switching"].append(entry)
+        fixed = "  ".join(f"a{b} {t:.4f}" for b, t in entry["fixed_flag_step_ms"].items())
+        print(f"  M = {m}: fixed flag {fixed}; flag switched every step {entry['switching_flag_step_ms']:.4f}; "
+              f"replay equals eager at {entry['replay_equals_eager']}")
+    path = write_json(args.out / f"cuda_{name}.json", report)
     print(f"wrote {path}")
     return 0
 
