@@ -220,12 +220,23 @@ DecodeActivations decode_activations(const Element* x, int64_t m, int64_t k, int
 // The row kernels read each weight row once, front to back, and the rows one after another: a prefetch
 // this far ahead of every 64-byte load keeps the next rows' bytes arriving while the current ones are
 // multiplied (the hardware prefetchers alone left the cold decode at 60 % of the streaming bandwidth).
-// Past the end of the weights it touches nothing: a prefetch does not fault.
+// Past the end of the weights it touches nothing: a prefetch does not fault. The distance and the cache
+// level were tuned on the two CPUs measured, told apart by the path compiled for them: on the Xeon with
+// AMX, 2 KiB ahead into L1; on an AMD EPYC (Zen 4, the avx512_bf16 path), where that left the integer
+// kernels' cold decode at 11 GB/s on one thread (W4A16 at 18), 4 KiB ahead into L2 reached 18 to 21 GB/s
+// (bench_linear.py, M = 1, cold), presumably as the faster integer kernels ran out of L1 fill buffers.
+#if defined(DYQ_AVX512_HAS_AMX)
 constexpr int64_t kWeightPrefetchBytes = 2048;
+constexpr _mm_hint kWeightPrefetchHint = _MM_HINT_T0;
+#else
+constexpr int64_t kWeightPrefetchBytes = 4096;
+constexpr _mm_hint kWeightPrefetchHint = _MM_HINT_T1;
+#endif
 
 inline void prefetch_weights(const uint8_t* packed) {
   // An address, not a pointer into the weights: it may lie past their end.
-  _mm_prefetch(reinterpret_cast<const char*>(reinterpret_cast<uintptr_t>(packed) + kWeightPrefetchBytes), _MM_HINT_T0);
+  _mm_prefetch(reinterpret_cast<const char*>(reinterpret_cast<uintptr_t>(packed) + kWeightPrefetchBytes),
+               kWeightPrefetchHint);
 }
 
 inline void offset_weight_nibbles(const uint8_t* packed, __mmask64 bytes, bool full, __m512i& even, __m512i& odd) {
