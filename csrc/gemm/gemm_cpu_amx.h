@@ -56,7 +56,6 @@
 #include "cpu/x86_ops.h"
 #include "parallel/parallel.h"
 
-
 DYQ_ISA_BEGIN
 namespace dyq::cpu::DYQ_ISA_NAMESPACE {
 
@@ -588,15 +587,15 @@ void amx_gemm(const Element* x, const uint8_t* qweight, const float* scales, con
     // Adds a group's contribution to the totals of its block of rows (the int8 kinds).
     auto scale_into_totals = [&](const Pending& job, const uint32_t (*group_sums)[kAmxPanelColumns]) {
       if constexpr (Kind::kQuantized) {
-      const Panel& panel = pass_panels[job.panel];
-      float* block_totals = &totals[(job.panel * a.rows + job.row_begin) * kAmxPanelColumns];
-      add_group_to_totals<Kind>(group_sums, job.rows, &a.zeros[job.row_begin * a.groups + job.global_group],
-                                &a.scales[job.row_begin * a.groups + job.global_group], a.groups,
-                                &panel.scales[job.group * kAmxPanelColumns],
-                                &panel.weight_sums[job.group * kAmxPanelColumns], block_totals);
-      // The rows' last group: their outputs, written while the totals are in L1, and spread over the last
-      // slice's tile work instead of in one burst at the end.
-      if (job.global_group + 1 == a.groups) write_outputs(job.panel, job.row_begin, job.rows, block_totals);
+        const Panel& panel = pass_panels[job.panel];
+        float* block_totals = &totals[(job.panel * a.rows + job.row_begin) * kAmxPanelColumns];
+        add_group_to_totals<Kind>(group_sums, job.rows, &a.zeros[job.row_begin * a.groups + job.global_group],
+                                  &a.scales[job.row_begin * a.groups + job.global_group], a.groups,
+                                  &panel.scales[job.group * kAmxPanelColumns],
+                                  &panel.weight_sums[job.group * kAmxPanelColumns], block_totals);
+        // The rows' last group: their outputs, written while the totals are in L1, and spread over the last
+        // slice's tile work instead of in one burst at the end.
+        if (job.global_group + 1 == a.groups) write_outputs(job.panel, job.row_begin, job.rows, block_totals);
       }
     };
     for (; pass_begin < panel_end; pass_begin += kPanelsPerPass) {

@@ -236,7 +236,7 @@ cudaError_t launch_decode(const GemmArgs& a, cudaStream_t stream) {
 
 cudaError_t gemm_decode(const GemmArgs& args, cudaStream_t stream) {
   if (args.m == 0 || args.n == 0) return cudaSuccess;
-  if (args.m > kDecodeMaxRows) return cudaErrorInvalidValue;
+  if (args.m > kDecodeMaxRows) return cudaErrorInvalidValue;  // more rows take the prefill path
   GemmArgs a = args;
   if (a.precision.flag != nullptr) {
     if (a.workspace == nullptr) return cudaErrorInvalidValue;  // gemm_workspace_bytes(..., true) bytes
@@ -246,8 +246,7 @@ cudaError_t gemm_decode(const GemmArgs& args, cudaStream_t stream) {
   if (a.m <= 2) return launch_decode<2>(a, stream);
   if (a.m <= 4) return launch_decode<4>(a, stream);
   static_assert(kDecodeMaxRows == 8, "one instantiation per row count up to kDecodeMaxRows");
-  if (a.m <= 8) return launch_decode<8>(a, stream);
-  return cudaErrorInvalidValue;  // more rows take the prefill path
+  return launch_decode<8>(a, stream);
 }
 
 }  // namespace dyq::cuda
