@@ -1,8 +1,8 @@
 #!/usr/bin/env bash
 # Everything dyq checks on a GPU, in one unattended run, for a machine with a CUDA build of torch, nvcc and
 # no network: build dyq against that torch, run the CUDA tests, time the kernels, then compute-sanitizer's
-# memcheck and racecheck. Each step has its own time limit and log; a failing step does not stop the ones after it
-# (except the build). Results and logs land in $OUT (default build/device), summary.txt last.
+# memcheck and racecheck. Each step has its own time limit and log; a failing step does not stop the ones
+# after it (except the build). Results and logs land in $OUT (default build/device), summary.txt last.
 #
 #   pip download cmeel-eigen -d build/device_wheels    # beforehand, where the registry is reachable:
 #                                                      # Eigen's headers, when the GPU machine has none
@@ -59,7 +59,11 @@ import torch, dyq
 cuda_ops = torch._C._dispatch_has_kernel_for_dispatch_key('dyq::gemm', 'CUDA')
 print('dyq', dyq.__version__, 'GPU', torch.cuda.is_available(), 'CUDA ops', cuda_ops, dyq.cpu_info())
 assert cuda_ops or not torch.cuda.is_available(), 'a GPU is there but dyq registered no CUDA kernels'"
-step test_cuda "${TEST_LIMIT:-240}" "$PYTHON" -m pytest -q -p no:cacheprovider -n 8 tests/test_cuda.py -rfE ${TEST_ARGS:-}
+# On 8 workers where pytest-xdist is installed: the tests' float64 references run on the CPU.
+workers=()
+"$PYTHON" -c "import xdist" 2> /dev/null && workers=(-n 8)
+step test_cuda "${TEST_LIMIT:-240}" "$PYTHON" -m pytest -q -p no:cacheprovider "${workers[@]}" tests/test_cuda.py -rfE \
+  ${TEST_ARGS:-}
 step bench_cuda "${BENCH_LIMIT:-180}" "$PYTHON" bench/bench_cuda.py ${BENCH_ARGS:-} --out "$OUT"
 # The sanitizers on a decode and a prefill case of every width (they slow the kernels many times).
 gemm_case=tests/test_cuda.py::test_gemm_matches_reference_and_cpu
