@@ -37,3 +37,12 @@ def test_ops_match_the_reference_on_every_runnable_path(isa):
 def test_an_unknown_or_unrunnable_path_is_an_error():
     result = run_with("no-such-path", "-c", "import dyq; dyq.cpu_info()")
     assert result.returncode != 0 and "is not one of this build's paths" in result.stderr
+
+
+def test_the_kernels_run_on_torchs_threads_where_torch_ships_its_openmp_runtime():
+    # Two thread pools on the same cores slow each other down (csrc/parallel/parallel.h): the build puts
+    # dyq's kernels on torch's intra-op threads wherever torch ships libgomp, and on its own pool elsewhere.
+    import torch
+
+    ships_libgomp = (Path(torch.__file__).parent / "lib" / "libgomp.so.1").exists()
+    assert dyq.cpu_info()["threads"] == ("torch" if ships_libgomp else "dyq")

@@ -8,17 +8,32 @@
 #include <exception>
 #include <mutex>
 #include <thread>
+#include <utility>
 #include <vector>
 
 namespace dyq {
 namespace {
 
 std::atomic<ParallelForBackend> g_backend{nullptr};
+std::atomic<ChunkRunner> g_chunk_runner{nullptr};
 std::atomic<ThreadCountSource> g_thread_count{nullptr};
 
 // A body that calls parallel_for again runs its inner range inline instead of oversubscribing.
 thread_local bool t_inside_parallel_region = false;
 thread_local int t_serial_depth = 0;  // SerialScope
+
+// Marks a host thread as inside dyq's parallel region while it runs a chunk, so that a parallel_for in
+// the body runs inline there too.
+class InsideParallelRegion {
+ public:
+  InsideParallelRegion() : was_inside_(std::exchange(t_inside_parallel_region, true)) {}
+  ~InsideParallelRegion() { t_inside_parallel_region = was_inside_; }
+  InsideParallelRegion(const InsideParallelRegion&) = delete;
+  InsideParallelRegion& operator=(const InsideParallelRegion&) = delete;
+
+ private:
+  bool was_inside_;
+};
 
 int hardware_threads() { return std::max(1, static_cast<int>(std::thread::hardware_concurrency())); }
 
@@ -45,7 +60,7 @@ class WorkerPool {
   // Runs task(c) once for every c in [0, chunks); the caller works too and returns when all are done.
   // An exception thrown by a task (std::bad_alloc in a worker, say) stops the chunks not yet started and
   // is rethrown here, in the calling thread, once every worker has left the job.
-  void run(int64_t chunks, const std::function<void(int64_t)>& task) {
+  void run(int64_t chunks, const ChunkTask& task) {
     std::lock_guard<std::mutex> one_job_at_a_time(run_mutex_);
     Job job(&task, chunks);
     bool anyone_asleep;
@@ -71,8 +86,8 @@ class WorkerPool {
 
  private:
   struct Job {
-    Job(const std::function<void(int64_t)>* task_, int64_t chunks_) : task(task_), chunks(chunks_) {}
-    const std::function<void(int64_t)>* task;
+    Job(const ChunkTask* task_, int64_t chunks_) : task(task_), chunks(chunks_) {}
+    const ChunkTask* task;
     int64_t chunks;
     std::atomic<int64_t> next{0};
     std::atomic<int> active{0};  // workers inside drain(); changed under mutex_
@@ -81,7 +96,7 @@ class WorkerPool {
   };
 
   static void drain(Job& job) {
-    t_inside_parallel_region = true;
+    const InsideParallelRegion inside;
     for (int64_t c; (c = job.next.fetch_add(1, std::memory_order_relaxed)) < job.chunks;) {
       try {
         (*job.task)(c);
@@ -91,7 +106,6 @@ class WorkerPool {
         job.next.store(job.chunks, std::memory_order_relaxed);  // start no further chunk
       }
     }
-    t_inside_parallel_region = false;
   }
 
   void serve() {
@@ -151,12 +165,13 @@ WorkerPool& pool() {
   return instance;
 }
 
-void pool_parallel_for(int64_t begin, int64_t end, int64_t grain_size, const RangeBody& body) {
+void chunked_parallel_for(int64_t begin, int64_t end, int64_t grain_size, const RangeBody& body) {
   const int64_t range = end - begin;
   const int64_t grain = std::max<int64_t>(grain_size, 1);
   const ThreadCountSource source = g_thread_count.load(std::memory_order_acquire);
+  const ChunkRunner runner = g_chunk_runner.load(std::memory_order_acquire);
   const int64_t threads = std::max(1, source != nullptr ? source() : hardware_threads());
-  const int64_t chunks = std::min({threads, range / grain, static_cast<int64_t>(pool().size()) + 1});
+  const int64_t chunks = std::min({threads, range / grain, runner != nullptr ? threads : pool().size() + 1});
   if (chunks <= 1 || t_inside_parallel_region || t_serial_depth > 0) {
     body(begin, end);
     return;
@@ -165,7 +180,14 @@ void pool_parallel_for(int64_t begin, int64_t end, int64_t grain_size, const Ran
   const int64_t base = range / chunks;
   const int64_t extra = range % chunks;
   auto chunk_begin = [&](int64_t c) { return begin + c * base + std::min(c, extra); };
-  pool().run(chunks, [&](int64_t c) { body(chunk_begin(c), chunk_begin(c + 1)); });
+  if (runner == nullptr) {
+    pool().run(chunks, [&](int64_t c) { body(chunk_begin(c), chunk_begin(c + 1)); });
+    return;
+  }
+  runner(chunks, [&](int64_t c) {
+    const InsideParallelRegion inside;
+    body(chunk_begin(c), chunk_begin(c + 1));
+  });
 }
 
 }  // namespace
@@ -176,7 +198,7 @@ void parallel_for(int64_t begin, int64_t end, int64_t grain_size, const RangeBod
   if (backend != nullptr) {
     backend(begin, end, grain_size, body);
   } else {
-    pool_parallel_for(begin, end, grain_size, body);
+    chunked_parallel_for(begin, end, grain_size, body);
   }
 }
 
@@ -189,6 +211,10 @@ SerialScope::~SerialScope() {
 }
 
 void set_parallel_backend(ParallelForBackend backend) { g_backend.store(backend, std::memory_order_release); }
+
+void set_chunk_runner(ChunkRunner runner) { g_chunk_runner.store(runner, std::memory_order_release); }
+
+bool runs_on_host_threads() { return g_chunk_runner.load(std::memory_order_acquire) != nullptr; }
 
 void set_thread_count_source(ThreadCountSource source) { g_thread_count.store(source, std::memory_order_release); }
 

@@ -1,12 +1,14 @@
 // `import dyq._C` loads this library, whose static initializers register the dyq ops with torch. The
 // module also carries the precision registry (common/precision.h) for Python, the GEMM width
-// counters (torch/width_counts.h) and the CPU path the kernels run (cpu/cpu_isa.h).
+// counters (torch/width_counts.h), the CPU path the kernels run (cpu/cpu_isa.h) and whose threads run
+// them (parallel/parallel.h).
 #include <Python.h>
 
 #include <stdexcept>
 
 #include "common/precision.h"
 #include "cpu/cpu_isa.h"
+#include "parallel/parallel.h"
 #include "torch/width_counts.h"
 
 namespace {
@@ -74,11 +76,18 @@ PyObject* cpu_gemm_kernel(PyObject*, PyObject* args) {
   }
 }
 
+// Whose threads run the CPU kernels: "torch" (its intra-op pool) or "dyq" (dyq's own pool).
+PyObject* cpu_threads(PyObject*, PyObject*) {
+  return PyUnicode_FromString(dyq::runs_on_host_threads() ? "torch" : "dyq");
+}
+
 PyMethodDef methods[] = {
     {"cpu_isa", cpu_isa, METH_NOARGS,
      "(active CPU path, paths this CPU can execute, paths compiled in), by their DYQ_CPU_ISA names."},
     {"cpu_gemm_kernel", cpu_gemm_kernel, METH_VARARGS,
      "cpu_gemm_kernel(m, k, group_size, act_bits): the kernel the active CPU path's GEMM runs for them."},
+    {"cpu_threads", cpu_threads, METH_NOARGS,
+     "Whose threads run the CPU kernels: \"torch\" (its intra-op pool) or \"dyq\" (dyq's own pool)."},
     {"gemm_width_counts", gemm_width_counts, METH_NOARGS,
      "GEMM calls of this process per registered activation width, in the order of ACTIVATION_BITS."},
     {"reset_gemm_width_counts", reset_gemm_width_counts, METH_NOARGS, "Set every GEMM width count to 0."},

@@ -20,9 +20,27 @@ namespace {
 
 int torch_thread_count() { return at::get_num_threads(); }
 
-// dyq's kernels use as many threads as torch's intra-op pool (torch.set_num_threads).
-[[maybe_unused]] const bool kThreadCountInstalled = [] {
+// at::parallel_for is a header template: with torch's OpenMP backend it runs in parallel only where this
+// file is compiled with OpenMP (CMakeLists.txt does so where torch ships its libgomp); otherwise it would
+// be a serial loop, and dyq keeps its own pool.
+#if defined(_OPENMP) || AT_PARALLEL_NATIVE
+#define DYQ_RUNS_ON_TORCH_THREADS 1
+void run_on_torch_threads(int64_t chunks, const ChunkTask& task) {
+  at::parallel_for(0, chunks, 1, [&](int64_t begin, int64_t end) {
+    for (int64_t chunk = begin; chunk < end; ++chunk) task(chunk);
+  });
+}
+#else
+#define DYQ_RUNS_ON_TORCH_THREADS 0
+#endif
+
+// dyq's kernels use as many threads as torch's intra-op pool (torch.set_num_threads), and, where this
+// build can, those very threads (parallel.h says why).
+[[maybe_unused]] const bool kThreadsInstalled = [] {
   set_thread_count_source(&torch_thread_count);
+#if DYQ_RUNS_ON_TORCH_THREADS
+  set_chunk_runner(&run_on_torch_threads);
+#endif
   return true;
 }();
 

@@ -1,7 +1,9 @@
 // dyq::parallel_for runs every index exactly once, with either backend.
 #include <gtest/gtest.h>
 
+#include <algorithm>
 #include <atomic>
+#include <exception>
 #include <mutex>
 #include <new>
 #include <stdexcept>
@@ -140,4 +142,93 @@ TEST(ParallelForPool, ExceptionInTheCallersChunkReachesTheCaller) {
   EXPECT_THROW(dyq::parallel_for(0, 1000, 1, [](int64_t, int64_t) { throw std::runtime_error("every chunk"); }),
                std::runtime_error);
   run_and_check(0, 997, 1, true);
+}
+
+namespace {
+
+std::atomic<int> g_runner_calls{0};
+std::atomic<int64_t> g_runner_most_chunks{0};
+
+// A host's chunk runner: one new thread per chunk but the first, which the caller runs; the first
+// exception is rethrown once every thread has joined.
+void thread_per_chunk_runner(int64_t chunks, const dyq::ChunkTask& task) {
+  ++g_runner_calls;
+  g_runner_most_chunks = std::max<int64_t>(g_runner_most_chunks.load(), chunks);
+  std::mutex error_mutex;
+  std::exception_ptr error;
+  auto run = [&](int64_t chunk) {
+    try {
+      task(chunk);
+    } catch (...) {
+      std::lock_guard<std::mutex> lock(error_mutex);
+      if (!error) error = std::current_exception();
+    }
+  };
+  std::vector<std::thread> threads;
+  for (int64_t chunk = 1; chunk < chunks; ++chunk) threads.emplace_back(run, chunk);
+  run(0);
+  for (auto& thread : threads) thread.join();
+  if (error) std::rethrow_exception(error);
+}
+
+class ParallelForChunkRunner : public ::testing::Test {
+ protected:
+  void SetUp() override {
+    dyq::set_parallel_backend(nullptr);
+    dyq::set_thread_count_source(three_threads);
+    dyq::set_chunk_runner(thread_per_chunk_runner);
+    g_runner_calls = 0;
+    g_runner_most_chunks = 0;
+  }
+  void TearDown() override {
+    dyq::set_chunk_runner(nullptr);
+    dyq::set_thread_count_source(nullptr);
+  }
+};
+
+}  // namespace
+
+TEST_F(ParallelForChunkRunner, RunsDyqsChunksOnTheHostsThreads) {
+  EXPECT_TRUE(dyq::runs_on_host_threads());
+  for (int64_t grain : {1, 3, 64, 1000}) {
+    for (int64_t end : {1, 2, 7, 100, 4097}) run_and_check(0, end, grain, true);
+  }
+  run_and_check(13, 1000, 10, true);
+  EXPECT_GT(g_runner_calls.load(), 0);
+  EXPECT_EQ(g_runner_most_chunks.load(), 3);  // never more chunks than the thread count source allows
+}
+
+TEST_F(ParallelForChunkRunner, NestedCallsRunInlineInTheHostsThreads) {
+  std::vector<std::atomic<int>> visits(64 * 64);
+  dyq::parallel_for(0, 64, 1, [&](int64_t outer_begin, int64_t outer_end) {
+    for (int64_t outer = outer_begin; outer < outer_end; ++outer) {
+      const auto thread = std::this_thread::get_id();
+      dyq::parallel_for(0, 64, 4, [&](int64_t inner_begin, int64_t inner_end) {
+        EXPECT_EQ(std::this_thread::get_id(), thread);
+        for (int64_t inner = inner_begin; inner < inner_end; ++inner) visits[outer * 64 + inner]++;
+      });
+    }
+  });
+  for (auto& v : visits) ASSERT_EQ(v.load(), 1);
+  EXPECT_EQ(g_runner_calls.load(), 1);
+}
+
+TEST_F(ParallelForChunkRunner, SerialScopeRunsInlineWithoutTheRunner) {
+  const dyq::SerialScope serial(true);
+  run_and_check(0, 997, 1, true);
+  EXPECT_EQ(g_runner_calls.load(), 0);
+}
+
+TEST_F(ParallelForChunkRunner, ExceptionInAChunkReachesTheCaller) {
+  EXPECT_THROW(dyq::parallel_for(0, 1000, 1,
+                                 [](int64_t begin, int64_t) {
+                                   if (begin > 0) throw std::bad_alloc();
+                                 }),
+               std::bad_alloc);
+  run_and_check(0, 997, 1, true);  // and the next call works
+}
+
+TEST(ParallelForChunkRunnerOff, NoRunnerMeansDyqsOwnPool) {
+  dyq::set_chunk_runner(nullptr);
+  EXPECT_FALSE(dyq::runs_on_host_threads());
 }
