@@ -34,6 +34,7 @@ def environment() -> dict:
     env = {
         "cpu": cpu_name(),
         "cpu_isa": dyq.cpu_info()["isa"],
+        "cpu_threads": dyq.cpu_info()["threads"],  # whose threads run dyq's CPU kernels
         "cores": os.cpu_count(),
         "torch_threads": torch.get_num_threads(),
         "python": platform.python_version(),
