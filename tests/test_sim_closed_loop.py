@@ -188,6 +188,12 @@ def test_a_row_on_fewer_seeds_keeps_the_seeds_of_the_rows_on_more(tmp_path):
     assert data["tasks"][TASK]["seeds"] == [7]
 
 
+def cpu_info_on(isa: str):
+    """dyq.cpu_info as on a machine whose CPU path is `isa` (the rest as here)."""
+    info = {**dyq.cpu_info(), "isa": isa}
+    return lambda: dict(info)
+
+
 def test_each_row_records_the_cpu_path_it_ran_on(tmp_path, monkeypatch):
     out = tmp_path / "closed_loop.json"
     row = evaluate.summarize([{"seed": 0, "success": True, "steps": 1, "bits": [16], "latency_ms": [1.0],
@@ -195,7 +201,7 @@ def test_each_row_records_the_cpu_path_it_ran_on(tmp_path, monkeypatch):
     # A file written when the path was recorded once per task: its rows keep that value.
     out.write_text(json.dumps({"tasks": {TASK: {"configs": {"fp32": row}, "cpu_isa": "avx512_bf16",
                                                 "checkpoint_digest": "abc"}}}))
-    monkeypatch.setattr(dyq, "cpu_info", lambda: {"isa": "avx2"})
+    monkeypatch.setattr(dyq, "cpu_info", cpu_info_on("avx2"))
     data = evaluate.update_results(out, TASK, [0], "ckpt", "abc", {"dyq": row})
     configs = data["tasks"][TASK]["configs"]
     assert (configs["fp32"]["cpu_isa"], configs["dyq"]["cpu_isa"]) == ("avx512_bf16", "avx2")
@@ -209,7 +215,7 @@ def test_each_row_records_the_cpu_path_it_ran_on(tmp_path, monkeypatch):
 
 def test_a_row_takes_its_cpu_path_from_its_episodes_not_from_the_machine_that_summarizes(tmp_path, monkeypatch):
     out = tmp_path / "closed_loop.json"
-    monkeypatch.setattr(dyq, "cpu_info", lambda: {"isa": "avx2"})
+    monkeypatch.setattr(dyq, "cpu_info", cpu_info_on("avx2"))
 
     def episode(seed, isa=None):
         return {"seed": seed, "success": True, "steps": 1, "bits": [16], "latency_ms": [1.0],
@@ -225,7 +231,7 @@ def test_a_row_takes_its_cpu_path_from_its_episodes_not_from_the_machine_that_su
     assert "cpu_isa" not in unrecorded
     data = evaluate.update_results(out, TASK, [0, 1], "ckpt", "abc", {"fp32": unrecorded})
     assert data["tasks"][TASK]["configs"]["fp32"]["cpu_isa"] == "avx2"
-    monkeypatch.setattr(dyq, "cpu_info", lambda: {"isa": "avx512_bf16"})
+    monkeypatch.setattr(dyq, "cpu_info", cpu_info_on("avx512_bf16"))
     data = evaluate.update_results(out, TASK, [0, 1], "ckpt", "abc", {"fp32": unrecorded, "w4a8": recorded})
     configs = data["tasks"][TASK]["configs"]
     assert (configs["fp32"]["cpu_isa"], configs["w4a8"]["cpu_isa"]) == ("avx2", "amx+avx512")

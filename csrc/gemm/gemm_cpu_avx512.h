@@ -188,27 +188,42 @@ DecodeActivations decode_activations(const Element* x, int64_t m, int64_t k, int
   out.blocks.resize(m * out.blocks_per_row);
   out.scales.resize(m * out.groups);
   const bool centred = act_bits != 8;
+  const int group_shift = __builtin_ctz(group_size);  // group sizes are powers of two, at least 8 (a lane)
   std::vector<float> row(k);
-  std::vector<uint8_t> codes(out.blocks_per_row * kBlockColumns, 0);
+  std::vector<uint8_t> codes(out.blocks_per_row * kBlockColumns, 0);  // zero past k
   std::vector<ActivationGroupParams> params(out.groups);
+  const __m512i even = even_byte_indices();
+  const __m512i odd = _mm512_add_epi8(even, _mm512_set1_epi8(1));
   for (int64_t r = 0; r < m; ++r) {
     quantize_activation_row(x + r * k, k, group_size, act_bits, row.data(), codes.data(), params.data());
     for (int64_t g = 0; g < out.groups; ++g) out.scales[r * out.groups + g] = params[g].scale;
     for (int64_t t = 0; t < out.blocks_per_row; ++t) {
       DecodeBlock& block = out.blocks[r * out.blocks_per_row + t];
-      for (int64_t i = 0; i < kBlockColumns; ++i) {
-        const int64_t column = t * kBlockColumns + i;
-        int value = 0;
-        if (column < k) value = centred ? codes[column] - params[column / group_size].zero : codes[column];
-        (i % 2 == 0 ? block.even_codes : block.odd_codes)[i / 2] = static_cast<uint8_t>(value);
-      }
+      // Per lane of 8 columns: its group's z_x, and how many of its columns lie before k.
+      alignas(64) uint8_t centring[kBlockColumns];  // z_x of each column before k when centred, else 0
+      int lane_zero[16], lane_columns[16];
       for (int lane = 0; lane < 16; ++lane) {
         const int64_t first = t * kBlockColumns + 8 * lane;
-        const int zero = first < k ? params[first / group_size].zero : 0;
-        block.zero_bytes[lane] = centred ? 0u : static_cast<uint32_t>(zero) * 0x01010101u;
-        int32_t sum = 0;
-        for (int64_t column = first; column < std::min(first + 8, k); ++column) sum += codes[column] - zero;
-        block.offsets[lane] = -8 * sum;
+        lane_columns[lane] = static_cast<int>(std::clamp<int64_t>(k - first, 0, 8));
+        lane_zero[lane] = lane_columns[lane] > 0 ? params[first >> group_shift].zero : 0;
+        const uint64_t columns_mask = lane_columns[lane] == 8 ? ~uint64_t{0} : (uint64_t{1} << (8 * lane_columns[lane])) - 1;
+        const uint64_t lane_bytes = centred ? (static_cast<uint64_t>(lane_zero[lane]) * 0x0101010101010101u) & columns_mask : 0;
+        std::memcpy(centring + 8 * lane, &lane_bytes, 8);
+        block.zero_bytes[lane] = centred ? 0u : static_cast<uint32_t>(lane_zero[lane]) * 0x01010101u;
+      }
+      const __m512i first = _mm512_loadu_si512(codes.data() + t * kBlockColumns);
+      const __m512i second = _mm512_loadu_si512(codes.data() + t * kBlockColumns + 64);
+      // Centred values a = q_x - z_x wrap into the s8 they are read as (|a| <= 15).
+      const __m512i values_first = _mm512_sub_epi8(first, _mm512_load_si512(centring));
+      const __m512i values_second = _mm512_sub_epi8(second, _mm512_load_si512(centring + 64));
+      _mm512_store_si512(block.even_codes, _mm512_permutex2var_epi8(values_first, even, values_second));
+      _mm512_store_si512(block.odd_codes, _mm512_permutex2var_epi8(values_first, odd, values_second));
+      // sum(q_x) over each lane's 8 codes (zero past k) by a sum of absolute differences with 0.
+      alignas(64) uint64_t code_sums[16];
+      _mm512_store_si512(code_sums, _mm512_sad_epu8(first, _mm512_setzero_si512()));
+      _mm512_store_si512(code_sums + 8, _mm512_sad_epu8(second, _mm512_setzero_si512()));
+      for (int lane = 0; lane < 16; ++lane) {
+        block.offsets[lane] = -8 * (static_cast<int32_t>(code_sums[lane]) - lane_columns[lane] * lane_zero[lane]);
       }
     }
   }

@@ -31,10 +31,11 @@ def environment() -> dict:
 
     import dyq
 
+    cpu = dyq.cpu_info()
     env = {
         "cpu": cpu_name(),
-        "cpu_isa": dyq.cpu_info()["isa"],
-        "cpu_threads": dyq.cpu_info()["threads"],  # whose threads run dyq's CPU kernels
+        "cpu_isa": cpu["isa"],
+        "cpu_threads": cpu["threads"],  # whose threads run dyq's CPU kernels
         "cores": os.cpu_count(),
         "torch_threads": torch.get_num_threads(),
         "python": platform.python_version(),
