@@ -86,6 +86,7 @@ template <typename Element>
 std::vector<DecodeBlock> decode_activations(const Element* x, int64_t m, int64_t k, int group_size, int act_bits) {
   const int64_t blocks = (k + kBlockColumns - 1) / kBlockColumns;
   const bool centred = act_bits != 8;
+  const int group_shift = __builtin_ctz(group_size);  // group sizes are powers of two, at least 8 (a lane)
   std::vector<DecodeBlock> quantized(m * blocks);
   parallel_for(0, m, 4, [&](int64_t row_begin, int64_t row_end) {
     std::vector<float> row(k);
@@ -93,26 +94,24 @@ std::vector<DecodeBlock> decode_activations(const Element* x, int64_t m, int64_t
     std::vector<ActivationGroupParams> params(group_count(k, group_size));
     for (int64_t r = row_begin; r < row_end; ++r) {
       quantize_activation_row(x + r * k, k, group_size, act_bits, row.data(), codes.data(), params.data());
-      auto value = [&](int64_t column) {  // the stored code of a column: 0 past k
-        if (column >= k) return 0;
-        return centred ? codes[column] - params[column / group_size].zero : int{codes[column]};
-      };
+      // Lane by lane (8 columns, inside one group): the group's parameters once, then its columns.
       for (int64_t t = 0; t < blocks; ++t) {
         DecodeBlock& block = quantized[r * blocks + t];
-        const int64_t first = t * kBlockColumns;
-        for (int j = 0; j < 32; ++j) {
-          block.even_codes[j] = static_cast<uint8_t>(value(first + 2 * j));
-          block.odd_codes[j] = static_cast<uint8_t>(value(first + 2 * j + 1));
-        }
         for (int lane = 0; lane < 8; ++lane) {
-          const int64_t begin = first + 8 * lane, end = std::min(begin + 8, k);
-          const bool inside = begin < k;
-          const int zero = inside ? params[begin / group_size].zero : 0;
+          const int64_t begin = t * kBlockColumns + 8 * lane;
+          const int columns = static_cast<int>(std::clamp<int64_t>(k - begin, 0, 8));  // before k
+          const ActivationGroupParams group = columns > 0 ? params[begin >> group_shift] : ActivationGroupParams{};
+          const int zero = columns > 0 ? group.zero : 0;
           int32_t sum = 0;
-          for (int64_t column = begin; column < end; ++column) sum += codes[column] - zero;
+          for (int j = 0; j < 8; ++j) {
+            const int code = j < columns ? codes[begin + j] : 0;
+            const int value = j < columns && centred ? code - zero : code;  // the stored code: 0 past k
+            sum += j < columns ? code - zero : 0;
+            (j % 2 == 0 ? block.even_codes : block.odd_codes)[4 * lane + j / 2] = static_cast<uint8_t>(value);
+          }
           block.zero_bytes[lane] = centred ? 0u : static_cast<uint32_t>(zero) * 0x01010101u;
           block.offsets[lane] = -8 * sum;
-          block.scale_lanes[lane] = inside ? params[begin / group_size].scale : 0.0f;
+          block.scale_lanes[lane] = columns > 0 ? group.scale : 0.0f;
         }
       }
     }
