@@ -206,8 +206,10 @@ DecodeActivations decode_activations(const Element* x, int64_t m, int64_t k, int
         const int64_t first = t * kBlockColumns + 8 * lane;
         lane_columns[lane] = static_cast<int>(std::clamp<int64_t>(k - first, 0, 8));
         lane_zero[lane] = lane_columns[lane] > 0 ? params[first >> group_shift].zero : 0;
-        const uint64_t columns_mask = lane_columns[lane] == 8 ? ~uint64_t{0} : (uint64_t{1} << (8 * lane_columns[lane])) - 1;
-        const uint64_t lane_bytes = centred ? (static_cast<uint64_t>(lane_zero[lane]) * 0x0101010101010101u) & columns_mask : 0;
+        const uint64_t columns_mask =
+            lane_columns[lane] == 8 ? ~uint64_t{0} : (uint64_t{1} << (8 * lane_columns[lane])) - 1;
+        const uint64_t lane_bytes =
+            centred ? (static_cast<uint64_t>(lane_zero[lane]) * 0x0101010101010101u) & columns_mask : 0;
         std::memcpy(centring + 8 * lane, &lane_bytes, 8);
         block.zero_bytes[lane] = centred ? 0u : static_cast<uint32_t>(lane_zero[lane]) * 0x01010101u;
       }
@@ -446,13 +448,6 @@ inline int64_t bf16_decode_column(int v, int word) {
   return 32 * (word / 8) + 2 * (word % 8) + ((v & 1) ? 16 : 0) + ((v & 2) ? 1 : 0);
 }
 
-inline float bf16_bits_to_float(uint16_t bits) {
-  const uint32_t wide = static_cast<uint32_t>(bits) << 16;
-  float value;
-  std::memcpy(&value, &wide, sizeof(value));
-  return value;
-}
-
 template <typename Element>
 Bf16DecodeActivations bf16_decode_activations(const Element* x, int64_t m, int64_t k, int group_size) {
   Bf16DecodeActivations out;
@@ -463,25 +458,41 @@ Bf16DecodeActivations bf16_decode_activations(const Element* x, int64_t m, int64
   const int64_t pitch = out.blocks_per_row * kBlockColumns;
   std::vector<float> row(pitch, 0.0f);
   std::vector<uint16_t> rounded(pitch);
+  // 128-bit lane j of vector v gathers its 8 words from the block's 32-column chunk j (bf16_decode_column):
+  // one two-source permute over chunks 0 and 1 gives lanes 0 and 1, one over chunks 2 and 3 lanes 2 and 3.
+  __m512i word_indices[4];
+  for (int v = 0; v < 4; ++v) {
+    alignas(64) uint16_t index[32];
+    for (int word = 0; word < 32; ++word) index[word] = static_cast<uint16_t>(bf16_decode_column(v, word) % 64);
+    word_indices[v] = _mm512_load_si512(index);
+  }
   for (int64_t r = 0; r < m; ++r) {
     load_row_fp32(x + r * k, k, row.data());
     for (int64_t c = 0; c < pitch; c += 16) {
       const __m256bh halves = _mm512_cvtneps_pbh(_mm512_loadu_ps(row.data() + c));
       std::memcpy(&rounded[c], &halves, sizeof(halves));
     }
+    // Whole groups, 16 columns at a time: the columns past k are zeros (a group never ends past the pitch).
     for (int64_t g = 0; g < out.groups; ++g) {
-      // Subnormal bf16 values count as zero in vdpbf16ps, and so in this sum.
-      float sum = 0.0f;
-      for (int64_t c = g * group_size; c < g * group_size + group_columns(k, group_size, g); ++c) {
-        const bool subnormal = (rounded[c] & 0x7F80u) == 0;
-        sum += subnormal ? 0.0f : bf16_bits_to_float(rounded[c]);
+      __m512 sum = _mm512_setzero_ps();
+      for (int64_t c = g * group_size; c < (g + 1) * group_size; c += 16) {
+        const __m256i words = _mm256_loadu_si256(reinterpret_cast<const __m256i*>(rounded.data() + c));
+        const __m512i bits = slli_epi32(_mm512_maskz_cvtepu16_epi32(kAll16, words), 16);
+        // Subnormal bf16 values count as zero in vdpbf16ps, and so in this sum.
+        const __mmask16 normal = _mm512_test_epi32_mask(bits, _mm512_set1_epi32(0x7F800000));
+        sum = _mm512_add_ps(sum, _mm512_maskz_mov_ps(normal, _mm512_castsi512_ps(bits)));
       }
-      out.offsets[r * out.groups + g] = -12.0f * sum;
+      out.offsets[r * out.groups + g] = -12.0f * reduce_lanes<AddLanes>(sum);
     }
     for (int64_t t = 0; t < out.blocks_per_row; ++t) {
+      const uint16_t* chunks = rounded.data() + t * kBlockColumns;  // four 32-column chunks
+      const __m512i first_pair[2] = {_mm512_loadu_si512(chunks), _mm512_loadu_si512(chunks + 32)};
+      const __m512i second_pair[2] = {_mm512_loadu_si512(chunks + 64), _mm512_loadu_si512(chunks + 96)};
       Bf16DecodeBlock& block = out.blocks[r * out.blocks_per_row + t];
       for (int v = 0; v < 4; ++v) {
-        for (int word = 0; word < 32; ++word) block.words[v][word] = rounded[t * kBlockColumns + bf16_decode_column(v, word)];
+        const __m512i low = _mm512_permutex2var_epi16(first_pair[0], word_indices[v], first_pair[1]);
+        const __m512i high = _mm512_permutex2var_epi16(second_pair[0], word_indices[v], second_pair[1]);
+        _mm512_store_si512(block.words[v], _mm512_mask_mov_epi16(low, 0xFFFF0000u, high));
       }
     }
   }
