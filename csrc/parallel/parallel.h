@@ -50,7 +50,8 @@ void set_chunk_runner(ChunkRunner runner);
 // Whether a chunk runner is installed (the kernels run on the host's threads).
 bool runs_on_host_threads();
 
-// How many threads the default pool may use per call; nullptr means one per hardware thread.
+// How many threads a call may use (its most chunks, on the pool or a runner); nullptr means one per
+// hardware thread.
 using ThreadCountSource = int (*)();
 void set_thread_count_source(ThreadCountSource source);
 
