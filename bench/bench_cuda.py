@@ -133,14 +133,7 @@ def graph_flag_switching(m: int, n: int, k: int, layers: int, warmup: int, repea
             h = torch.ops.dyq.gemm_with_flag(h, qweight, scales, GROUP_SIZE, flag)
         return h
 
-    stream = torch.cuda.Stream()
-    stream.wait_stream(torch.cuda.current_stream())
-    with torch.cuda.stream(stream):
-        forward()
-    torch.cuda.current_stream().wait_stream(stream)
-    graph = torch.cuda.CUDAGraph()
-    with torch.cuda.graph(graph):
-        captured = forward()
+    graph, captured = dyq.capture_cuda_graph(forward)
 
     matches = {}
     for bits in dyq.VALID_BITS:

@@ -215,14 +215,7 @@ def test_cuda_graph_replays_at_the_precision_the_flag_holds(m, rng):
             h = torch.ops.dyq.gemm_with_flag(h, qweight, scales, 128, flag)
         return h
 
-    stream = torch.cuda.Stream()
-    stream.wait_stream(torch.cuda.current_stream())
-    with torch.cuda.stream(stream):
-        forward()  # warm-up outside the capture
-    torch.cuda.current_stream().wait_stream(stream)
-    graph = torch.cuda.CUDAGraph()
-    with torch.cuda.graph(graph):
-        captured = forward()
+    graph, captured = dyq.capture_cuda_graph(forward)
 
     for bits in (2, 8, 16, 4, 16, 2):
         flag[0] = bits
@@ -250,14 +243,7 @@ def test_cuda_graph_keeps_a_layers_floor_under_every_flag_value(capture_bits, rn
             h = torch.ops.dyq.gemm_with_flag(h, qweight, scales, 128, flag, None, floor)
         return h
 
-    stream = torch.cuda.Stream()
-    stream.wait_stream(torch.cuda.current_stream())
-    with torch.cuda.stream(stream):
-        forward()
-    torch.cuda.current_stream().wait_stream(stream)
-    graph = torch.cuda.CUDAGraph()
-    with torch.cuda.graph(graph):
-        captured = forward()
+    graph, captured = dyq.capture_cuda_graph(forward)
 
     for bits in (2, 4, 8, 16, 2):
         flag[0] = bits

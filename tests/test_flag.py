@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 import torch
 
-from dyq import VALID_BITS, PrecisionFlag
+from dyq import VALID_BITS, PrecisionFlag, capture_cuda_graph
 from dyq.core.precision import check_bits
 
 
@@ -97,3 +97,9 @@ def test_a_kernel_reads_the_value_written_before_its_launch():
 
 def test_repr_shows_bits_and_pinning():
     assert repr(PrecisionFlag(8)) == f"PrecisionFlag(bits=8, pinned={torch.cuda.is_available()})"
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="the CUDA tests capture graphs with it")
+def test_capturing_a_cuda_graph_without_cuda_is_a_clear_error():
+    with pytest.raises(RuntimeError, match="capture_cuda_graph needs CUDA"):
+        capture_cuda_graph(lambda: None)

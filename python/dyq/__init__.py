@@ -10,7 +10,7 @@ Layout: ``dyq.core`` (kernel API), ``dyq.control`` (dispatcher, flag, runtime), 
 line, demo); every public name is importable from ``dyq`` itself.
 """
 from .control.dispatch import DispatchConfig, Hysteresis, KinematicDispatcher, ProxyWeight
-from .control.flag import PrecisionFlag
+from .control.flag import PrecisionFlag, capture_cuda_graph
 from .control.runtime import DyQRuntime, StepStats, force_precision
 from .core import ops, reference
 from .core.cpu import cpu_gemm_kernel, cpu_info
@@ -42,6 +42,7 @@ __all__ = [
     "GROUP_SIZES",
     "ProxyWeight",
     "PrecisionFlag",
+    "capture_cuda_graph",
     "QuantizationReport",
     "VALID_BITS",
     "bind_flag",

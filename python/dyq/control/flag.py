@@ -88,3 +88,21 @@ class PrecisionFlag:
 
     def __repr__(self) -> str:
         return f"PrecisionFlag(bits={self.bits}, pinned={self.is_pinned})"
+
+
+def capture_cuda_graph(forward):
+    """Captures ``forward()`` (CUDA work, such as a decode step of layers bound to a :class:`PrecisionFlag`)
+    into a CUDA graph and returns ``(graph, output)``: each ``graph.replay()`` reruns it and refills
+    ``output`` in place, at the width the flag holds when the replay runs. ``forward`` first runs once on a
+    side stream outside the capture, as torch requires, so that lazy initializations are not captured."""
+    if not torch.cuda.is_available():
+        raise RuntimeError("dyq.capture_cuda_graph needs CUDA: torch.cuda.is_available() is False")
+    stream = torch.cuda.Stream()
+    stream.wait_stream(torch.cuda.current_stream())
+    with torch.cuda.stream(stream):
+        forward()
+    torch.cuda.current_stream().wait_stream(stream)
+    graph = torch.cuda.CUDAGraph()
+    with torch.cuda.graph(graph):
+        output = forward()
+    return graph, output
