@@ -61,6 +61,69 @@ void load_row_fp32(const Element* x, int64_t k, float* out) {
   }
 }
 
+// out[i] = values[i] + bias[i] (bias nullable) converted to Element exactly as from_float does (round half
+// to even; a NaN becomes Eigen's quiet NaN of its sign for bf16), a vector at a time: written one by one,
+// the outputs of a 256-row GEMM of a 256 x 256 layer took a fifth of its time in bf16.
+#if defined(DYQ_CPU_ISA_AVX512)
+template <typename Element>
+void store_lanes(__m512 v, Element* out) {
+  if constexpr (std::is_same_v<Element, float>) {
+    _mm512_storeu_ps(out, v);
+  } else if constexpr (std::is_same_v<Element, Eigen::bfloat16>) {
+    const __m512i bits = _mm512_castps_si512(v);
+    const __m512i one = _mm512_set1_epi32(1);
+    const __m512i rounding = _mm512_add_epi32(_mm512_set1_epi32(0x7FFF), _mm512_and_si512(srli_epi32(bits, 16), one));
+    const __m512i rounded = srli_epi32(_mm512_add_epi32(bits, rounding), 16);
+    const __m512i quiet_nan = _mm512_or_si512(_mm512_and_si512(srli_epi32(bits, 16), _mm512_set1_epi32(0x8000)),
+                                              _mm512_set1_epi32(0x7FC0));
+    const __mmask16 nan = _mm512_cmp_ps_mask(v, v, _CMP_UNORD_Q);
+    _mm256_storeu_si256(reinterpret_cast<__m256i*>(out),
+                        _mm512_maskz_cvtepi32_epi16(kAll16, _mm512_mask_blend_epi32(nan, rounded, quiet_nan)));
+  } else {
+    _mm256_storeu_si256(reinterpret_cast<__m256i*>(out), _mm512_maskz_cvtps_ph(kAll16, v, _MM_FROUND_TO_NEAREST_INT | _MM_FROUND_NO_EXC));
+  }
+}
+#elif defined(DYQ_CPU_ISA_AVX2)
+template <typename Element>
+void store_lanes(__m256 v, Element* out) {
+  if constexpr (std::is_same_v<Element, float>) {
+    _mm256_storeu_ps(out, v);
+  } else if constexpr (std::is_same_v<Element, Eigen::bfloat16>) {
+    const __m256i bits = _mm256_castps_si256(v);
+    const __m256i rounding = _mm256_add_epi32(_mm256_set1_epi32(0x7FFF),
+                                              _mm256_and_si256(_mm256_srli_epi32(bits, 16), _mm256_set1_epi32(1)));
+    const __m256i rounded = _mm256_srli_epi32(_mm256_add_epi32(bits, rounding), 16);
+    const __m256i quiet_nan = _mm256_or_si256(_mm256_and_si256(_mm256_srli_epi32(bits, 16), _mm256_set1_epi32(0x8000)),
+                                              _mm256_set1_epi32(0x7FC0));
+    const __m256i nan = _mm256_castps_si256(_mm256_cmp_ps(v, v, _CMP_UNORD_Q));
+    const __m256i words = _mm256_blendv_epi8(rounded, quiet_nan, nan);  // each below 2^16
+    const __m128i packed = _mm_packus_epi32(_mm256_castsi256_si128(words), _mm256_extracti128_si256(words, 1));
+    _mm_storeu_si128(reinterpret_cast<__m128i*>(out), packed);
+  } else {
+    _mm_storeu_si128(reinterpret_cast<__m128i*>(out), _mm256_cvtps_ph(v, _MM_FROUND_TO_NEAREST_INT | _MM_FROUND_NO_EXC));
+  }
+}
+#endif
+
+template <typename Element>
+void store_row_from_fp32(const float* values, const Element* bias, int64_t count, Element* out) {
+  int64_t i = 0;
+#if defined(DYQ_CPU_ISA_AVX512)
+  for (; i + 16 <= count; i += 16) {
+    __m512 v = _mm512_loadu_ps(values + i);
+    if (bias != nullptr) v = _mm512_add_ps(v, load_fp32_lanes(bias + i));
+    store_lanes(v, out + i);
+  }
+#elif defined(DYQ_CPU_ISA_AVX2)
+  for (; i + 8 <= count; i += 8) {
+    __m256 v = _mm256_loadu_ps(values + i);
+    if (bias != nullptr) v = _mm256_add_ps(v, load_fp32_lanes(bias + i));
+    store_lanes(v, out + i);
+  }
+#endif
+  for (; i < count; ++i) out[i] = from_float<Element>(values[i] + (bias != nullptr ? to_float(bias[i]) : 0.0f));
+}
+
 #if defined(DYQ_CPU_ISA_AVX512)
 // Codes q_x of one group of `columns` fp32 values (a full group, or the remainder at the end of a row);
 // returns the group's (s_x, z_x). Lanes past `columns` load as 0, which changes neither the range (it

@@ -576,12 +576,8 @@ void amx_gemm(const Element* x, const uint8_t* qweight, const float* scales, con
       const int64_t columns = std::min(kAmxPanelColumns, n - weight_row);
       for (int64_t r = 0; r < rows; ++r) {
         const float* total = block_totals + r * kAmxPanelColumns;
-        Element* out_row = out + (row_begin + r) * n + weight_row;
-        if (bias != nullptr) {
-          for (int64_t j = 0; j < columns; ++j) out_row[j] = from_float<Element>(total[j] + to_float(bias[weight_row + j]));
-        } else {
-          for (int64_t j = 0; j < columns; ++j) out_row[j] = from_float<Element>(total[j]);
-        }
+        store_row_from_fp32(total, bias != nullptr ? bias + weight_row : nullptr, columns,
+                            out + (row_begin + r) * n + weight_row);
       }
     };
     // Adds a group's contribution to the totals of its block of rows (the int8 kinds).

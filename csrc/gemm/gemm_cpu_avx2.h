@@ -570,10 +570,8 @@ void run_panels(ActivationRow&& activation_row, const uint8_t* qweight, const fl
       }
       const int64_t outputs = std::min(kPanelOutputs, n - row_begin);
       for (int64_t r = 0; r < m; ++r) {
-        for (int64_t j = 0; j < outputs; ++j) {
-          const float bias_value = bias != nullptr ? to_float(bias[row_begin + j]) : 0.0f;
-          out[r * n + row_begin + j] = from_float<Element>(totals[r * kPanelOutputs + j] + bias_value);
-        }
+        store_row_from_fp32(&totals[r * kPanelOutputs], bias != nullptr ? bias + row_begin : nullptr, outputs,
+                            out + r * n + row_begin);
       }
     }
   });

@@ -83,6 +83,9 @@ std::vector<QuantizedBlock> quantize_activation_blocks(const Element* x, int64_t
     std::vector<ActivationGroupParams> params(group_count(k, group_size));
     const __m512i even = even_byte_indices();
     const __m512i odd = _mm512_add_epi8(even, _mm512_set1_epi8(1));
+    // Group sizes are powers of two (at least 8, a lane): a shift, where a division per lane cost as
+    // much as the whole quantization of a 128-column block.
+    const int group_shift = __builtin_ctz(group_size);
     for (int64_t r = row_begin; r < row_end; ++r) {
       quantize_activation_row(x + r * k, k, group_size, act_bits, row.data(), codes.data(), params.data());
       for (int64_t t = 0; t < blocks; ++t) {
@@ -94,8 +97,9 @@ std::vector<QuantizedBlock> quantize_activation_blocks(const Element* x, int64_t
         for (int lane = 0; lane < 16; ++lane) {
           const int64_t column = t * kBlockColumns + 8 * lane;
           const bool inside = column < k;
-          block.zero_lanes[lane] = inside ? static_cast<float>(params[column / group_size].zero) : 0.0f;
-          block.scale_lanes[lane] = inside ? params[column / group_size].scale : 0.0f;
+          const ActivationGroupParams& group = params[inside ? column >> group_shift : 0];
+          block.zero_lanes[lane] = inside ? static_cast<float>(group.zero) : 0.0f;
+          block.scale_lanes[lane] = inside ? group.scale : 0.0f;
         }
       }
     }
@@ -813,10 +817,8 @@ void run_panels(ActivationRow&& activation_row, const uint8_t* qweight, const fl
       }
       const int64_t columns = std::min(kPanelColumns, n - weight_row);
       for (int64_t row = 0; row < m; ++row) {
-        for (int64_t j = 0; j < columns; ++j) {
-          const float bias_value = bias != nullptr ? to_float(bias[weight_row + j]) : 0.0f;
-          out[row * n + weight_row + j] = from_float<Element>(totals[row * kPanelColumns + j] + bias_value);
-        }
+        store_row_from_fp32(&totals[row * kPanelColumns], bias != nullptr ? bias + weight_row : nullptr, columns,
+                            out + row * n + weight_row);
       }
     }
   });

@@ -2,7 +2,9 @@
 // GEMM on the codes of docs/numerics.md, section 3.
 #include <gtest/gtest.h>
 
+#include <algorithm>
 #include <cmath>
+#include <cstring>
 #include <functional>
 #include <limits>
 #include <string>
@@ -204,6 +206,44 @@ TEST_P(GemmEdgeTest, NaNRowIsNaNAndOtherRowsAreUntouched) {
 }
 
 INSTANTIATE_TEST_SUITE_P(AllActBits, GemmEdgeTest, ::testing::Values(2, 4, 8, 16));
+
+// A bf16 or fp16 output is the fp32 output rounded exactly as from_float rounds (round half to even, a NaN
+// stays NaN): x and the bias hold values exact in every element type, so the fp32 call computes the same
+// sums, and only the final conversion, vectorized in the kernels, differs. Rows of either path, columns
+// past the last whole vector, and a NaN row.
+template <typename Element>
+void expect_outputs_rounded_from_fp32(int act_bits, int64_t m, ScalarType dtype) {
+  const Problem p{m, 45, 3 * 64, 64, act_bits, true, 31u + static_cast<uint32_t>(m)};
+  // Multiples of 1/64 in [-4, 4): 9 significant bits at most, exact in bf16 and fp16 alike.
+  Inputs in = make_inputs(p, [](float v) { return std::round(std::clamp(v, -3.9f, 3.9f) * 64.0f) / 64.0f; });
+  in.x[(m - 1) * p.k + 5] = NAN;
+  for (const auto& impl : implementations()) {
+    std::vector<float> fp32_out(p.m * p.n);
+    impl.run(in.x.data(), ScalarType::kFloat32, in.qweight.data(), in.weight.scales.data(), in.bias.data(), p.m, p.n,
+             p.k, p.group_size, act_bits, fp32_out.data());
+    const auto x = naive::to_element<Element>(in.x);
+    const auto bias = naive::to_element<Element>(in.bias);
+    std::vector<Element> out(p.m * p.n);
+    impl.run(x.data(), dtype, in.qweight.data(), in.weight.scales.data(), bias.data(), p.m, p.n, p.k, p.group_size,
+             act_bits, out.data());
+    for (int64_t i = 0; i < p.m * p.n; ++i) {
+      const Element expected = static_cast<Element>(fp32_out[i]);
+      if (std::isnan(fp32_out[i])) {
+        ASSERT_TRUE(std::isnan(static_cast<float>(out[i]))) << impl.name << " element " << i;
+      } else {
+        ASSERT_EQ(std::memcmp(&out[i], &expected, sizeof(Element)), 0)
+            << impl.name << " element " << i << ": " << static_cast<float>(out[i]) << " for fp32 " << fp32_out[i];
+      }
+    }
+  }
+}
+
+TEST_P(GemmEdgeTest, HalfPrecisionOutputsAreTheFp32OutputsRounded) {
+  for (const int64_t m : {1, 3, 9, 40}) {
+    expect_outputs_rounded_from_fp32<Eigen::bfloat16>(GetParam(), m, ScalarType::kBFloat16);
+    expect_outputs_rounded_from_fp32<Eigen::half>(GetParam(), m, ScalarType::kFloat16);
+  }
+}
 
 TEST(Gemm, InfinityMakesTheQuantizedRowNaN) {
   const Problem p{3, 17, 128, 128, 4, false, 5};
