@@ -596,7 +596,7 @@ void gemm_typed(const Element* x, const uint8_t* qweight, const float* scales, c
     const std::vector<DecodeBlock> activations = decode_activations(x, m, k, group_size, kBits);
     run_tiles<kMaxTileRows>(
         qweight, scales, bias, m, n, k, group_size, out, [&](int64_t r) { return activations.data() + r * blocks; },
-        [&](auto tile_rows, const uint8_t* weight_row, const float* scales_row, const DecodeBlock* const* rows,
+        [&](auto tile_rows, auto, const uint8_t* weight_row, const float* scales_row, const DecodeBlock* const* rows,
             float* sums) {
           decode_int_kernel<decltype(tile_rows)::value, kBits == 8>(weight_row, scales_row, k, group_size, rows, sums);
         });
@@ -614,7 +614,8 @@ void gemm_typed(const Element* x, const uint8_t* qweight, const float* scales, c
     const std::vector<float> activations = deinterleave_activations(x, m, k, group_size);
     run_tiles<kMaxTileRows>(
         qweight, scales, bias, m, n, k, group_size, out, [&](int64_t r) { return activations.data() + r * pitch; },
-        [&](auto tile_rows, const uint8_t* weight_row, const float* scales_row, const float* const* rows, float* sums) {
+        [&](auto tile_rows, auto, const uint8_t* weight_row, const float* scales_row, const float* const* rows,
+            float* sums) {
           fp32_row_kernel<decltype(tile_rows)::value>(weight_row, scales_row, k, group_size, rows, sums);
         });
   }

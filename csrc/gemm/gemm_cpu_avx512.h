@@ -300,14 +300,74 @@ inline __m512 block_lanes(const float* per_group, int64_t t, int group_size, int
 
 inline int64_t sixteen_padded(int64_t count) { return (count + 15) / 16 * 16; }
 
-// sums[r] = y[r] (without bias) for one weight row and kRows integer activation rows.
-template <int kRows, bool kWideCodes>
-void decode_int_kernel(const uint8_t* weight_row, const float* scales_row, int64_t k, int group_size,
+// The prefetch that goes with reading block t of weight row c in a row kernel over kCols weight rows.
+// One row is one stream, prefetched kWeightPrefetchBytes ahead. kCols rows are kCols streams
+// k / 2 bytes apart, which the prefetchers lose (each prefetched that far ahead, the cold decode of
+// 4096 x 4096 fell from 21 to 12 GB/s on the AMD EPYC): instead one sweep over the next kCols rows' bytes,
+// in memory order, as fast as the call reads its own, so that they have all arrived when it ends (21 to
+// 24 GB/s, at the streaming read's speed). Past the end of the weights it touches nothing.
+template <int kCols>
+void prefetch_block(const uint8_t* weight_rows, int64_t row_bytes, int64_t t, int c) {
+  if constexpr (kCols == 1) {
+    prefetch_weights(weight_rows + t * (kBlockColumns / 2));
+  } else {
+    _mm_prefetch(reinterpret_cast<const char*>(reinterpret_cast<uintptr_t>(weight_rows) + kCols * row_bytes +
+                                               (t * kCols + c) * (kBlockColumns / 2)),
+                 kWeightPrefetchHint);
+  }
+}
+
+// Weight rows that one call of a row kernel covers with kRows activation rows: a few at once share the
+// activation loads, the per-call set-up and the horizontal sums, which for short weight rows cost more than
+// their blocks (M = 1 of a 768 x 256 layer: 12.6 us one row at a time on the AMD EPYC, about 16 ns a row
+// against 2.7 ns a 64-byte block).
+constexpr int decode_columns(int rows) { return rows <= 2 ? 4 : rows <= 4 ? 2 : 1; }
+
+// The 128-bit lanes of x and y that kSelector picks (vshuff32x4).
+template <int kSelector>
+inline __m512 shuffle_lanes(__m512 x, __m512 y) {
+  return _mm512_maskz_shuffle_f32x4(kAll16, x, y, kSelector);
+}
+
+// The sums of the 16 lanes of each of a, b, c and d, in that order, added in reduce_lanes' order.
+inline __m128 sum_lanes_of_four(__m512 a, __m512 b, __m512 c, __m512 d) {
+  // 128-bit lanes of ab: a's lanes 0 + 2 and 1 + 3, then b's; of their sum below: a, b, c, d.
+  const __m512 ab = _mm512_add_ps(shuffle_lanes<0x44>(a, b), shuffle_lanes<0xEE>(a, b));
+  const __m512 cd = _mm512_add_ps(shuffle_lanes<0x44>(c, d), shuffle_lanes<0xEE>(c, d));
+  __m512 sums = _mm512_add_ps(shuffle_lanes<0x88>(ab, cd), shuffle_lanes<0xDD>(ab, cd));
+  sums = _mm512_add_ps(sums, _mm512_maskz_permute_ps(kAll16, sums, 0x4E));  // elements 0 + 2 and 1 + 3
+  sums = _mm512_add_ps(sums, _mm512_maskz_permute_ps(kAll16, sums, 0xB1));  // then those two
+  return _mm512_maskz_extractf32x4_ps(0xF, _mm512_maskz_compress_ps(0x1111, sums), 0);
+}
+
+// sums[c * kRows + r] = the lanes of acc[c][r] summed.
+template <int kRows, int kCols>
+void store_lane_sums(const __m512 (&acc)[kCols][kRows], float* sums) {
+  if constexpr (kCols == 4) {
+    for (int r = 0; r < kRows; ++r) {
+      alignas(16) float four[4];
+      _mm_store_ps(four, sum_lanes_of_four(acc[0][r], acc[1][r], acc[2][r], acc[3][r]));
+      for (int c = 0; c < 4; ++c) sums[c * kRows + r] = four[c];
+    }
+  } else {
+    for (int c = 0; c < kCols; ++c) {
+      for (int r = 0; r < kRows; ++r) sums[c * kRows + r] = reduce_lanes<AddLanes>(acc[c][r]);
+    }
+  }
+}
+
+// sums[c * kRows + r] = y[r] (without bias) of weight row c, for kCols consecutive weight rows (row c at
+// weight_rows + c * k / 2, its scales at scales_rows + c * groups) and kRows integer activation rows.
+template <int kRows, int kCols, bool kWideCodes>
+void decode_int_kernel(const uint8_t* weight_rows, const float* scales_rows, int64_t k, int group_size,
                        const DecodeRow* rows, float* sums) {
   const int64_t groups = group_count(k, group_size);
   const int64_t pitch = sixteen_padded(groups);
-  float* products = scratch_floats(kRows * pitch);
-  group_products<kRows>(scales_row, groups, rows, products, pitch);
+  const int64_t row_bytes = k / 2;
+  float* products = scratch_floats(kCols * kRows * pitch);  // [c][r][group]
+  for (int c = 0; c < kCols; ++c) {
+    group_products<kRows>(scales_rows + c * groups, groups, rows, products + c * kRows * pitch, pitch);
+  }
   // Lane i covers columns 8i..8i+7 of the block: group i * 8 / group_size of it.
   const __m512i lane_group = srli_epi32(
       slli_epi32(_mm512_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15), 3),
@@ -315,30 +375,40 @@ void decode_int_kernel(const uint8_t* weight_row, const float* scales_row, int64
   const int64_t full_blocks = k / kBlockColumns;
   const int64_t blocks = (k + kBlockColumns - 1) / kBlockColumns;
   const __mmask64 tail_bytes = (__mmask64{1} << ((k % kBlockColumns) / 2)) - 1;
-  __m512 acc[kRows];
-  for (int r = 0; r < kRows; ++r) acc[r] = _mm512_setzero_ps();
+  __m512 acc[kCols][kRows];
+  for (auto& column : acc) {
+    for (__m512& value : column) value = _mm512_setzero_ps();
+  }
   for (int64_t t = 0; t < blocks; ++t) {
     const bool full = t < full_blocks;
-    prefetch_weights(weight_row + t * (kBlockColumns / 2));
-    __m512i even, odd;
-    offset_weight_nibbles(weight_row + t * (kBlockColumns / 2), tail_bytes, full, even, odd);
-    [[maybe_unused]] const __m512i both = kWideCodes ? _mm512_add_epi8(even, odd) : even;  // u sums: below 31
+    __m512i even[kCols], odd[kCols];
+    [[maybe_unused]] __m512i both[kCols];
+    for (int c = 0; c < kCols; ++c) {
+      const uint8_t* packed = weight_rows + c * row_bytes + t * (kBlockColumns / 2);
+      prefetch_block<kCols>(weight_rows, row_bytes, t, c);
+      offset_weight_nibbles(packed, tail_bytes, full, even[c], odd[c]);
+      if constexpr (kWideCodes) both[c] = _mm512_add_epi8(even[c], odd[c]);  // u sums: below 31
+    }
     for (int r = 0; r < kRows; ++r) {
       const DecodeBlock& block = rows[r].blocks[t];
       const __m512i a_even = _mm512_load_si512(block.even_codes), a_odd = _mm512_load_si512(block.odd_codes);
       const __m512i offsets = _mm512_load_si512(block.offsets);
-      __m512i dot;  // P of each lane
-      if constexpr (kWideCodes) {
-        dot = _mm512_dpbusd_epi32(_mm512_dpbusd_epi32(offsets, a_even, even), a_odd, odd);
-        dot = _mm512_sub_epi32(dot, _mm512_dpbusd_epi32(_mm512_setzero_si512(), _mm512_load_si512(block.zero_bytes), both));
-      } else {
-        dot = _mm512_dpbusd_epi32(_mm512_dpbusd_epi32(offsets, even, a_even), odd, a_odd);
+      for (int c = 0; c < kCols; ++c) {
+        __m512i dot;  // P of each lane
+        if constexpr (kWideCodes) {
+          dot = _mm512_dpbusd_epi32(_mm512_dpbusd_epi32(offsets, a_even, even[c]), a_odd, odd[c]);
+          dot = _mm512_sub_epi32(
+              dot, _mm512_dpbusd_epi32(_mm512_setzero_si512(), _mm512_load_si512(block.zero_bytes), both[c]));
+        } else {
+          dot = _mm512_dpbusd_epi32(_mm512_dpbusd_epi32(offsets, even[c], a_even), odd[c], a_odd);
+        }
+        acc[c][r] = _mm512_fmadd_ps(
+            cvtepi32_ps(dot), block_lanes(products + (c * kRows + r) * pitch, t, group_size, groups, lane_group),
+            acc[c][r]);
       }
-      acc[r] = _mm512_fmadd_ps(cvtepi32_ps(dot), block_lanes(products + r * pitch, t, group_size, groups, lane_group),
-                               acc[r]);
     }
   }
-  for (int r = 0; r < kRows; ++r) sums[r] = reduce_lanes<AddLanes>(acc[r]);
+  store_lane_sums<kRows, kCols>(acc, sums);
 }
 
 template <int kRows>
@@ -916,10 +986,12 @@ void gemm_typed(const Element* x, const uint8_t* qweight, const float* scales, c
       return;
     }
     const DecodeActivations activations = decode_activations(x, m, k, group_size, kBits);
-    run_tiles<kMaxTileRows>(
+    run_tiles<kMaxTileRows, decode_columns>(
         qweight, scales, bias, m, n, k, group_size, out, [&](int64_t r) { return activations.row(r); },
-        [&](auto tile_rows, const uint8_t* weight_row, const float* scales_row, const DecodeRow* rows, float* sums) {
-          decode_int_kernel<decltype(tile_rows)::value, kBits == 8>(weight_row, scales_row, k, group_size, rows, sums);
+        [&](auto tile_rows, auto tile_columns, const uint8_t* weight_rows, const float* scales_rows,
+            const DecodeRow* rows, float* sums) {
+          decode_int_kernel<decltype(tile_rows)::value, decltype(tile_columns)::value, kBits == 8>(
+              weight_rows, scales_rows, k, group_size, rows, sums);
         });
   } else {
 #if defined(DYQ_AVX512_HAS_AMX)
@@ -939,9 +1011,10 @@ void gemm_typed(const Element* x, const uint8_t* qweight, const float* scales, c
       return;
     }
     const Bf16DecodeActivations activations = bf16_decode_activations(x, m, k, group_size);
+    // One weight row per call: four at once, the bf16 kernel was no faster (its blocks cost the most).
     run_tiles<kMaxTileRows>(
         qweight, scales, bias, m, n, k, group_size, out, [&](int64_t r) { return activations.row(r); },
-        [&](auto tile_rows, const uint8_t* weight_row, const float* scales_row, const Bf16DecodeRow* rows,
+        [&](auto tile_rows, auto, const uint8_t* weight_row, const float* scales_row, const Bf16DecodeRow* rows,
             float* sums) {
           bf16_decode_kernel<decltype(tile_rows)::value>(weight_row, scales_row, k, group_size, rows, sums);
         });
@@ -960,7 +1033,8 @@ void gemm_typed(const Element* x, const uint8_t* qweight, const float* scales, c
     const int64_t pitch = chunk_padded(k);
     run_tiles<kMaxTileRows>(
         qweight, scales, bias, m, n, k, group_size, out, [&](int64_t r) { return activations.data() + r * pitch; },
-        [&](auto tile_rows, const uint8_t* weight_row, const float* scales_row, const float* const* rows, float* sums) {
+        [&](auto tile_rows, auto, const uint8_t* weight_row, const float* scales_row, const float* const* rows,
+            float* sums) {
           fp32_row_kernel<decltype(tile_rows)::value>(weight_row, scales_row, k, group_size, rows, sums);
         });
 #endif
