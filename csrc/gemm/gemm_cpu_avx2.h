@@ -582,14 +582,16 @@ void gemm_typed(const Element* x, const uint8_t* qweight, const float* scales, c
                 int64_t n, int64_t k, int group_size, Element* out) {
   if constexpr (ActivationTraits<kBits>::kQuantized) {
     if (m >= kPanelMinRows) {
-      const PanelCodes activations = panel_codes(x, m, k, group_size, kBits);
-      run_panels<IntPanel>(
-          [&](int64_t r) {
-            return IntPanelRow{activations.codes.data() + r * activations.pitch,
-                               activations.scales.data() + r * activations.groups,
-                               activations.zeros.data() + r * activations.groups};
-          },
-          qweight, scales, bias, m, n, k, group_size, out);
+      split_panel_rows(m, n, k, IntPanel::kTileRows, [&](int64_t row_begin, int64_t rows) {
+        const PanelCodes activations = panel_codes(x + row_begin * k, rows, k, group_size, kBits);
+        run_panels<IntPanel>(
+            [&](int64_t r) {
+              return IntPanelRow{activations.codes.data() + r * activations.pitch,
+                                 activations.scales.data() + r * activations.groups,
+                                 activations.zeros.data() + r * activations.groups};
+            },
+            qweight, scales, bias, rows, n, k, group_size, out + row_begin * n);
+      });
       return;
     }
     const int64_t blocks = (k + kBlockColumns - 1) / kBlockColumns;
@@ -603,12 +605,16 @@ void gemm_typed(const Element* x, const uint8_t* qweight, const float* scales, c
   } else {
     const int64_t pitch = group_padded(k, group_size);
     if (m >= kPanelMinRows) {
-      std::vector<float> activations(m * pitch, 0.0f);
-      parallel_for(0, m, 16, [&](int64_t row_begin, int64_t row_end) {
-        for (int64_t r = row_begin; r < row_end; ++r) load_row_fp32(x + r * k, k, activations.data() + r * pitch);
+      split_panel_rows(m, n, k, Fp32Panel::kTileRows, [&](int64_t row_begin, int64_t rows) {
+        std::vector<float> activations(rows * pitch, 0.0f);
+        parallel_for(0, rows, 16, [&](int64_t row_begin_, int64_t row_end) {
+          for (int64_t r = row_begin_; r < row_end; ++r) {
+            load_row_fp32(x + (row_begin + r) * k, k, activations.data() + r * pitch);
+          }
+        });
+        run_panels<Fp32Panel>([&](int64_t r) { return static_cast<const float*>(activations.data() + r * pitch); },
+                              qweight, scales, bias, rows, n, k, group_size, out + row_begin * n);
       });
-      run_panels<Fp32Panel>([&](int64_t r) { return static_cast<const float*>(activations.data() + r * pitch); },
-                            qweight, scales, bias, m, n, k, group_size, out);
       return;
     }
     const std::vector<float> activations = deinterleave_activations(x, m, k, group_size);

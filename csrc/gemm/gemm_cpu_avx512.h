@@ -897,31 +897,6 @@ void run_panels(ActivationRow&& activation_row, const uint8_t* qweight, const fl
 // From this many activation rows on, the panel path (below it the row kernels, which need no packing).
 constexpr int64_t kPanelMinRows = 8;
 
-// Packed weights up to this size are split between the threads by activation rows rather than by panels.
-constexpr int64_t kRowSplitMaxWeightBytes = int64_t{1} << 20;
-
-// Calls rows_fn(row_begin, rows) over the activation rows: once for all of them (the threads then split
-// the panels), or, for a layer whose weights stay in cache, once per thread for a share of whole row tiles,
-// which quantizes its own rows and runs them against every panel. With the panel split every thread
-// reads every row that the others quantized: on the 2-core AMD EPYC, a 256-row GEMM of a 256 x 256 layer
-// took 98 us on two threads against 77 us for its quantization and panels timed apart, the difference
-// the rows crossing between the cores. The row split packs every panel once per thread instead, which
-// costs more than it saves once the weight rows outnumber the activation rows about four to one (there,
-// alternating runs: 64 rows of a 768 x 256 layer 10 % slower split by rows, of a 256 x 256 one 2 to 13 %
-// faster; 256 rows of either 16 to 24 % faster).
-template <typename RowsFn>
-void split_panel_rows(int64_t m, int64_t n, int64_t k, RowsFn&& rows_fn) {
-  if (n * (k / 2) > kRowSplitMaxWeightBytes || 4 * m < n || m < 2 * kPanelTileRows) {
-    rows_fn(int64_t{0}, m);
-    return;
-  }
-  const int64_t tiles = (m + kPanelTileRows - 1) / kPanelTileRows;
-  parallel_for(0, tiles, 1, [&](int64_t tile_begin, int64_t tile_end) {
-    const int64_t row_begin = tile_begin * kPanelTileRows;
-    rows_fn(row_begin, std::min(tile_end * kPanelTileRows, m) - row_begin);
-  });
-}
-
 #if defined(DYQ_AVX512_HAS_AMX)
 // From this many activation rows on, the AMX tiles (two A tiles of 16 rows), unpacking the weights with the
 // panel packers above (gemm/gemm_cpu_amx.h).
@@ -976,7 +951,7 @@ void gemm_typed(const Element* x, const uint8_t* qweight, const float* scales, c
     }
 #endif
     if (m >= kPanelMinRows) {
-      split_panel_rows(m, n, k, [&](int64_t row_begin, int64_t rows) {
+      split_panel_rows(m, n, k, kPanelTileRows, [&](int64_t row_begin, int64_t rows) {
         const int64_t blocks = (k + kBlockColumns - 1) / kBlockColumns;
         const std::vector<QuantizedBlock> activations =
             quantize_activation_blocks(x + row_begin * k, rows, k, group_size, kBits);
@@ -1002,7 +977,7 @@ void gemm_typed(const Element* x, const uint8_t* qweight, const float* scales, c
 #endif
 #if defined(DYQ_AVX512_HAS_BF16)
     if (m >= kPanelMinRows) {
-      split_panel_rows(m, n, k, [&](int64_t row_begin, int64_t rows) {
+      split_panel_rows(m, n, k, kPanelTileRows, [&](int64_t row_begin, int64_t rows) {
         const AlignedVector<uint16_t> activations = bf16_activations(x + row_begin * k, rows, k);
         const int64_t pitch = block_padded(k);
         run_panels<Bf16Panel>([&](int64_t r) { return activations.data() + r * pitch; }, qweight, scales, bias, rows,
