@@ -160,42 +160,73 @@ inline void accumulate_block(__m256i packed, __m256 weight_scales, const DecodeB
   }
 }
 
-// sums[r] = y[r] (without bias) for one weight row and kRows integer activation rows. Two accumulators
-// per row, for even and odd blocks.
-template <int kRows, bool kWideCodes>
-void decode_int_kernel(const uint8_t* weight_row, const float* scales_row, int64_t k, int group_size,
+// Weight rows per call of the integer row kernel with kRows activation rows: two at once share the
+// activation loads and the per-call set-up, which for short weight rows cost more than their blocks (as on
+// the AVX-512 path; on the AMD EPYC forced to AVX2, M = 1 of a 768 x 256 layer at A8 10.4 -> 9.4 us). Four,
+// as on AVX-512, were no faster there and 3 to 5 % slower on hot Llama-7B rows at A8, whose wider codes
+// leave fewer of the 16 vector registers.
+constexpr int decode_columns(int rows) { return rows <= 2 ? 2 : 1; }
+
+// sums[c * kRows + r] = y[r] (without bias) of weight row c, for kCols consecutive weight rows (row c at
+// weight_rows + c * k / 2, its scales at scales_rows + c * groups) and kRows integer activation rows. One
+// weight row alone alternates two accumulators per activation row between the even and the odd blocks;
+// several rows' accumulators are independent chains already.
+template <int kRows, int kCols, bool kWideCodes>
+void decode_int_kernel(const uint8_t* weight_rows, const float* scales_rows, int64_t k, int group_size,
                        const DecodeBlock* const* rows, float* sums) {
+  constexpr int kChains = kCols == 1 ? 2 : 1;
   const int64_t groups = group_count(k, group_size);
   const int group_shift = __builtin_ctz(group_size);
+  const int64_t row_bytes = k / 2;
   const int64_t full_blocks = k / kBlockColumns;
-  __m256 acc[2][kRows];
-  for (int r = 0; r < kRows; ++r) acc[0][r] = acc[1][r] = _mm256_setzero_ps();
+  __m256 acc[kChains][kCols][kRows];
+  for (auto& chain : acc) {
+    for (auto& column : chain) {
+      for (__m256& value : column) value = _mm256_setzero_ps();
+    }
+  }
+  // Block t of every weight row into the accumulators of `chain`; `tail`: the rows' last, partial block,
+  // whose bytes past k read as u = 0 (nibbles 8), so that they add nothing to z_x * sum(u) (their
+  // activation codes are 0).
+  auto accumulate = [&](int64_t t, int chain, bool tail) {
+    for (int c = 0; c < kCols; ++c) {
+      const uint8_t* packed = weight_rows + c * row_bytes + t * (kBlockColumns / 2);
+      alignas(32) uint8_t tail_bytes[32];
+      if (tail) {
+        std::memset(tail_bytes, 0x88, sizeof(tail_bytes));
+        std::memcpy(tail_bytes, packed, (k % kBlockColumns) / 2);
+        packed = tail_bytes;
+      }
+      accumulate_block<kRows, kWideCodes>(_mm256_loadu_si256(reinterpret_cast<const __m256i*>(packed)),
+                                          weight_scale_lanes(scales_rows + c * groups, t, group_shift, groups), rows,
+                                          t, acc[chain][c]);
+    }
+  };
   int64_t t = 0;
-  for (; t + 2 <= full_blocks; t += 2) {
-    const uint8_t* packed = weight_row + t * (kBlockColumns / 2);
-    _mm_prefetch(reinterpret_cast<const char*>(packed + kPrefetchBytes), _MM_HINT_T1);
-    accumulate_block<kRows, kWideCodes>(_mm256_loadu_si256(reinterpret_cast<const __m256i*>(packed)),
-                                        weight_scale_lanes(scales_row, t, group_shift, groups), rows, t, acc[0]);
-    accumulate_block<kRows, kWideCodes>(_mm256_loadu_si256(reinterpret_cast<const __m256i*>(packed + 32)),
-                                        weight_scale_lanes(scales_row, t + 1, group_shift, groups), rows, t + 1,
-                                        acc[1]);
+  for (; t + kChains <= full_blocks; t += kChains) {
+    if constexpr (kCols == 1) {
+      _mm_prefetch(reinterpret_cast<const char*>(weight_rows + t * (kBlockColumns / 2) + kPrefetchBytes),
+                   _MM_HINT_T1);
+    } else {
+      // kCols rows are kCols streams, which the prefetchers lose: one sweep over the next kCols rows'
+      // bytes in memory order instead, as fast as this call reads its own (as on the AVX-512 path).
+      for (int line = 0; line < kCols / 2; ++line) {
+        _mm_prefetch(reinterpret_cast<const char*>(reinterpret_cast<uintptr_t>(weight_rows) + kCols * row_bytes +
+                                                   t * kCols * (kBlockColumns / 2) + 64 * line),
+                     _MM_HINT_T1);
+      }
+    }
+    for (int chain = 0; chain < kChains; ++chain) accumulate(t + chain, chain, false);
   }
-  if (t < full_blocks) {
-    accumulate_block<kRows, kWideCodes>(
-        _mm256_loadu_si256(reinterpret_cast<const __m256i*>(weight_row + t * (kBlockColumns / 2))),
-        weight_scale_lanes(scales_row, t, group_shift, groups), rows, t, acc[0]);
-    ++t;
+  if (t < full_blocks) accumulate(t++, 0, false);
+  if (k % kBlockColumns != 0) accumulate(t, kChains - 1, true);
+  for (int c = 0; c < kCols; ++c) {
+    for (int r = 0; r < kRows; ++r) {
+      __m256 total = acc[0][c][r];
+      for (int chain = 1; chain < kChains; ++chain) total = _mm256_add_ps(total, acc[chain][c][r]);
+      sums[c * kRows + r] = reduce_lanes<AddLanes>(total);
+    }
   }
-  if (k % kBlockColumns != 0) {
-    // The row's last, partial block: the bytes past k read as u = 0 (nibbles 8), so that they add
-    // nothing to z_x * sum(u); their activation codes are 0.
-    alignas(32) uint8_t tail[32];
-    std::memset(tail, 0x88, sizeof(tail));
-    std::memcpy(tail, weight_row + t * (kBlockColumns / 2), (k % kBlockColumns) / 2);
-    accumulate_block<kRows, kWideCodes>(_mm256_load_si256(reinterpret_cast<const __m256i*>(tail)),
-                                        weight_scale_lanes(scales_row, t, group_shift, groups), rows, t, acc[1]);
-  }
-  for (int r = 0; r < kRows; ++r) sums[r] = reduce_lanes<AddLanes>(_mm256_add_ps(acc[0][r], acc[1][r]));
 }
 
 // ---- row kernels, act_bits 16 -------------------------------------------------------------------------
@@ -600,11 +631,12 @@ void gemm_typed(const Element* x, const uint8_t* qweight, const float* scales, c
     }
     const int64_t blocks = (k + kBlockColumns - 1) / kBlockColumns;
     const std::vector<DecodeBlock> activations = decode_activations(x, m, k, group_size, kBits);
-    run_tiles<kMaxTileRows>(
+    run_tiles<kMaxTileRows, decode_columns>(
         qweight, scales, bias, m, n, k, group_size, out, [&](int64_t r) { return activations.data() + r * blocks; },
-        [&](auto tile_rows, auto, const uint8_t* weight_row, const float* scales_row, const DecodeBlock* const* rows,
-            float* sums) {
-          decode_int_kernel<decltype(tile_rows)::value, kBits == 8>(weight_row, scales_row, k, group_size, rows, sums);
+        [&](auto tile_rows, auto tile_columns, const uint8_t* weight_rows, const float* scales_rows,
+            const DecodeBlock* const* rows, float* sums) {
+          decode_int_kernel<decltype(tile_rows)::value, decltype(tile_columns)::value, kBits == 8>(
+              weight_rows, scales_rows, k, group_size, rows, sums);
         });
   } else {
     const int64_t pitch = group_padded(k, group_size);
