@@ -894,8 +894,15 @@ void run_panels(ActivationRow&& activation_row, const uint8_t* qweight, const fl
   });
 }
 
-// From this many activation rows on, the panel path (below it the row kernels, which need no packing).
-constexpr int64_t kPanelMinRows = 8;
+// Whether m activation rows take the panel path rather than the row kernels, which need no packing but pay
+// per weight row and per activation row. On the AMD EPYC (alternating runs, 1 and 2 threads) the panels
+// were faster from 5 rows on at the integer widths (1.35x to 2.3x at 5 rows) and from 6 at W4A16, on the
+// Llama-7B and the policy's shapes alike, and, for weight rows of at most 256 columns, whose per-row
+// costs outweigh their few blocks, from 2 rows on (1.1x to 2.2x). No AMX CPU was measured.
+inline bool use_panels(int64_t m, int64_t k, int act_bits) {
+  if (k <= 2 * kBlockColumns) return m >= 2;
+  return m >= (act_bits == kFallbackBits ? 6 : 5);
+}
 
 #if defined(DYQ_AVX512_HAS_AMX)
 // From this many activation rows on, the AMX tiles (two A tiles of 16 rows), unpacking the weights with the
@@ -950,7 +957,7 @@ void gemm_typed(const Element* x, const uint8_t* qweight, const float* scales, c
       return;
     }
 #endif
-    if (m >= kPanelMinRows) {
+    if (use_panels(m, k, kBits)) {
       split_panel_rows(m, n, k, kPanelTileRows, [&](int64_t row_begin, int64_t rows) {
         const int64_t blocks = (k + kBlockColumns - 1) / kBlockColumns;
         const std::vector<QuantizedBlock> activations =
@@ -976,7 +983,7 @@ void gemm_typed(const Element* x, const uint8_t* qweight, const float* scales, c
     }
 #endif
 #if defined(DYQ_AVX512_HAS_BF16)
-    if (m >= kPanelMinRows) {
+    if (use_panels(m, k, kBits)) {
       split_panel_rows(m, n, k, kPanelTileRows, [&](int64_t row_begin, int64_t rows) {
         const AlignedVector<uint16_t> activations = bf16_activations(x + row_begin * k, rows, k);
         const int64_t pitch = block_padded(k);
@@ -994,7 +1001,7 @@ void gemm_typed(const Element* x, const uint8_t* qweight, const float* scales, c
           bf16_decode_kernel<decltype(tile_rows)::value>(weight_row, scales_row, k, group_size, rows, sums);
         });
 #else
-    if (m >= kPanelMinRows) {
+    if (use_panels(m, k, kBits)) {
       const int64_t pitch = block_padded(k);  // zeros past k, which the last quads read
       std::vector<float> activations(m * pitch, 0.0f);
       parallel_for(0, m, 16, [&](int64_t row_begin, int64_t row_end) {
@@ -1016,8 +1023,8 @@ void gemm_typed(const Element* x, const uint8_t* qweight, const float* scales, c
   }
 }
 
-inline const char* gemm_kernel(int64_t m, int64_t, int, int act_bits) {
-  const bool panel = m >= kPanelMinRows;
+inline const char* gemm_kernel(int64_t m, int64_t k, int, int act_bits) {
+  const bool panel = use_panels(m, k, act_bits);
 #if defined(DYQ_AVX512_HAS_AMX)
   if (m >= kAmxMinRows) return act_bits != kFallbackBits ? DYQ_ISA_NAME "/tiles-amx-int8" : DYQ_ISA_NAME "/tiles-amx-bf16-dequantized";
 #endif
