@@ -295,8 +295,9 @@ def test_activations_near_the_fp32_range_give_the_reference_answer(act_bits, mag
         assert torch.equal(act_scales, reference.quantize_activations(x, 64, act_bits)[1])
 
 
-# Rows on either side of the CPU's switch from the row kernels (decode) to the panel path (8 rows on the
-# AVX2 path; 2, 5 or 6 on AVX-512, by K and the width; dyq.cpu_gemm_kernel names the kernel of a call).
+# Rows on either side of the CPU's switch from the row kernels (decode) to the panel path (4 or 5 rows on
+# the AVX2 path, by the width; 2, 5 or 6 on AVX-512, by K and the width; dyq.cpu_gemm_kernel names the
+# kernel of a call).
 PANEL_THRESHOLD_ROWS = (1, 2, 3, 4, 5, 6, 7, 8, 9, 15, 16, 17, 31)
 
 

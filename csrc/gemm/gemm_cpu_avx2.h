@@ -3,7 +3,7 @@
 // Packed weights are rows of K / 2 bytes, byte j holding column 2j in its low nibble and column 2j + 1 in
 // its high one, each a two's-complement code q_w in [-8, 7]. Two kinds of kernel read them:
 //
-// Row kernels, below kPanelMinRows activation rows (decode). The work is one stream over the packed
+// Row kernels, for the few activation rows below use_panels' threshold (decode). The work is one stream over the packed
 // weights, so they spend as few instructions as they can per 32-byte load, keep several independent
 // accumulators (an FMA's latency is longer than the work between two of a chain's FMAs) and prefetch
 // the bytes kPrefetchBytes ahead, which, rows being adjacent, runs on into the next weight rows. Each
@@ -29,7 +29,7 @@
 //   in separate accumulators, and each group's partial sums are scaled once, the odd ones by s_w / 16
 //   (a power of two: the same sum, scaled exactly).
 //
-// Panel path, from kPanelMinRows rows on (prefill). The weights of kPanelOutputs = 16 output rows are
+// Panel path, from use_panels' threshold on (prefill). The weights of kPanelOutputs = 16 output rows are
 // decoded once per slice of columns into a small buffer that stays in L1 / L2 (IntWeightPanel,
 // Fp32WeightPanel) and reused by register-blocked micro-kernels over every activation row:
 // - act_bits 2/4/8: s8 codes, 4 consecutive columns of one output per int32 lane (8 outputs per
@@ -72,7 +72,6 @@ constexpr int kMaxTileRows = 4;           // activation rows that share one pass
 // the streaming read on one thread (45 to 57 % on two), 4 KiB into L2 reached 70 to 86 % (79 to 102 %).
 // No AVX2-only CPU was measured.
 constexpr int64_t kPrefetchBytes = 4096;
-constexpr int64_t kPanelMinRows = 8;      // from this many activation rows on, the panel path
 
 // ---- row kernels, act_bits 2/4/8 --------------------------------------------------------------------
 
@@ -612,11 +611,17 @@ void run_panels(ActivationRow&& activation_row, const uint8_t* qweight, const fl
   });
 }
 
+// Whether m activation rows take the panel path rather than the row kernels, which need no packing but pay
+// per activation row: on the AMD EPYC forced to this path (alternating runs, one thread) the panels were
+// faster from 4 rows on at the integer widths (1.0x to 1.5x at 4, 1.2x to 1.8x at 5, on the Llama-7B and
+// the policy's shapes) and from 5 at W4A16 (1.05x to 1.4x). No AVX2-only CPU was measured.
+inline bool use_panels(int64_t m, int act_bits) { return m >= (act_bits == kFallbackBits ? 5 : 4); }
+
 template <int kBits, typename Element>
 void gemm_typed(const Element* x, const uint8_t* qweight, const float* scales, const Element* bias, int64_t m,
                 int64_t n, int64_t k, int group_size, Element* out) {
   if constexpr (ActivationTraits<kBits>::kQuantized) {
-    if (m >= kPanelMinRows) {
+    if (use_panels(m, kBits)) {
       split_panel_rows(m, n, k, IntPanel::kTileRows, [&](int64_t row_begin, int64_t rows) {
         const PanelCodes activations = panel_codes(x + row_begin * k, rows, k, group_size, kBits);
         run_panels<IntPanel>(
@@ -640,7 +645,7 @@ void gemm_typed(const Element* x, const uint8_t* qweight, const float* scales, c
         });
   } else {
     const int64_t pitch = group_padded(k, group_size);
-    if (m >= kPanelMinRows) {
+    if (use_panels(m, kBits)) {
       split_panel_rows(m, n, k, Fp32Panel::kTileRows, [&](int64_t row_begin, int64_t rows) {
         std::vector<float> activations(rows * pitch, 0.0f);
         parallel_for(0, rows, 16, [&](int64_t row_begin_, int64_t row_end) {
@@ -664,7 +669,7 @@ void gemm_typed(const Element* x, const uint8_t* qweight, const float* scales, c
 }
 
 inline const char* gemm_kernel(int64_t m, int64_t, int, int act_bits) {
-  const bool panel = m >= kPanelMinRows;
+  const bool panel = use_panels(m, act_bits);
   if (act_bits == kFallbackBits) return panel ? "avx2/panel-fp32" : "avx2/rows-fp32";
   return panel ? "avx2/panel-maddubs" : "avx2/rows-maddubs";
 }
