@@ -72,7 +72,8 @@ void store_lanes(__m512 v, Element* out) {
   } else if constexpr (std::is_same_v<Element, Eigen::bfloat16>) {
     const __m512i bits = _mm512_castps_si512(v);
     const __m512i one = _mm512_set1_epi32(1);
-    const __m512i rounding = _mm512_add_epi32(_mm512_set1_epi32(0x7FFF), _mm512_and_si512(srli_epi32(bits, 16), one));
+    const __m512i rounding =
+        _mm512_add_epi32(_mm512_set1_epi32(0x7FFF), _mm512_and_si512(srli_epi32(bits, 16), one));
     const __m512i rounded = srli_epi32(_mm512_add_epi32(bits, rounding), 16);
     const __m512i quiet_nan = _mm512_or_si512(_mm512_and_si512(srli_epi32(bits, 16), _mm512_set1_epi32(0x8000)),
                                               _mm512_set1_epi32(0x7FC0));
@@ -80,7 +81,8 @@ void store_lanes(__m512 v, Element* out) {
     _mm256_storeu_si256(reinterpret_cast<__m256i*>(out),
                         _mm512_maskz_cvtepi32_epi16(kAll16, _mm512_mask_blend_epi32(nan, rounded, quiet_nan)));
   } else {
-    _mm256_storeu_si256(reinterpret_cast<__m256i*>(out), _mm512_maskz_cvtps_ph(kAll16, v, _MM_FROUND_TO_NEAREST_INT | _MM_FROUND_NO_EXC));
+    _mm256_storeu_si256(reinterpret_cast<__m256i*>(out),
+                        _mm512_maskz_cvtps_ph(kAll16, v, _MM_FROUND_TO_NEAREST_INT | _MM_FROUND_NO_EXC));
   }
 }
 #elif defined(DYQ_CPU_ISA_AVX2)
@@ -100,7 +102,8 @@ void store_lanes(__m256 v, Element* out) {
     const __m128i packed = _mm_packus_epi32(_mm256_castsi256_si128(words), _mm256_extracti128_si256(words, 1));
     _mm_storeu_si128(reinterpret_cast<__m128i*>(out), packed);
   } else {
-    _mm_storeu_si128(reinterpret_cast<__m128i*>(out), _mm256_cvtps_ph(v, _MM_FROUND_TO_NEAREST_INT | _MM_FROUND_NO_EXC));
+    _mm_storeu_si128(reinterpret_cast<__m128i*>(out),
+                     _mm256_cvtps_ph(v, _MM_FROUND_TO_NEAREST_INT | _MM_FROUND_NO_EXC));
   }
 }
 #endif

@@ -3,10 +3,10 @@
 // Packed weights are rows of K / 2 bytes, byte j holding column 2j in its low nibble and column 2j + 1 in
 // its high one, each a two's-complement code q_w in [-8, 7]. Two kinds of kernel read them:
 //
-// Row kernels, for the few activation rows below use_panels' threshold (decode). The work is one stream over the packed
-// weights, so they spend as few instructions as they can per 32-byte load, keep several independent
-// accumulators (an FMA's latency is longer than the work between two of a chain's FMAs) and prefetch
-// the bytes kPrefetchBytes ahead, which, rows being adjacent, runs on into the next weight rows. Each
+// Row kernels, for the few activation rows below use_panels' threshold (decode). The work is one stream
+// over the packed weights, so they spend as few instructions as they can per 32-byte load, keep several
+// independent accumulators (an FMA's latency is longer than the work between two of a chain's FMAs) and
+// prefetch the bytes kPrefetchBytes ahead, which, rows being adjacent, runs on into the next weight rows. Each
 // weight row is read once per tile of up to kMaxTileRows activation rows (run_tiles, rows-per-block
 // loop in gemm_cpu_row_tiles.inc).
 // - act_bits 2/4/8: a 32-byte load holds 64 columns. The codes are read offset by 8, u = q_w + 8 =
@@ -206,13 +206,9 @@ void decode_int_kernel(const uint8_t* weight_rows, const float* scales_rows, int
     if constexpr (kCols == 1) {
       _mm_prefetch(reinterpret_cast<const char*>(weight_rows + t * (kBlockColumns / 2) + kPrefetchBytes),
                    _MM_HINT_T1);
-    } else {
-      // kCols rows are kCols streams, which the prefetchers lose: one sweep over the next kCols rows'
-      // bytes in memory order instead, as fast as this call reads its own (as on the AVX-512 path).
+    } else {  // the next rows in one sweep: the kCols / 2 lines this step reads of its own rows
       for (int line = 0; line < kCols / 2; ++line) {
-        _mm_prefetch(reinterpret_cast<const char*>(reinterpret_cast<uintptr_t>(weight_rows) + kCols * row_bytes +
-                                                   t * kCols * (kBlockColumns / 2) + 64 * line),
-                     _MM_HINT_T1);
+        prefetch_next_rows<_MM_HINT_T1>(weight_rows, kCols * row_bytes, t * kCols * (kBlockColumns / 2) + 64 * line);
       }
     }
     for (int chain = 0; chain < kChains; ++chain) accumulate(t + chain, chain, false);
@@ -648,8 +644,8 @@ void gemm_typed(const Element* x, const uint8_t* qweight, const float* scales, c
     if (use_panels(m, kBits)) {
       split_panel_rows(m, n, k, Fp32Panel::kTileRows, [&](int64_t row_begin, int64_t rows) {
         std::vector<float> activations(rows * pitch, 0.0f);
-        parallel_for(0, rows, 16, [&](int64_t row_begin_, int64_t row_end) {
-          for (int64_t r = row_begin_; r < row_end; ++r) {
+        parallel_for(0, rows, 16, [&](int64_t first, int64_t last) {
+          for (int64_t r = first; r < last; ++r) {
             load_row_fp32(x + (row_begin + r) * k, k, activations.data() + r * pitch);
           }
         });

@@ -300,20 +300,14 @@ inline __m512 block_lanes(const float* per_group, int64_t t, int group_size, int
 
 inline int64_t sixteen_padded(int64_t count) { return (count + 15) / 16 * 16; }
 
-// The prefetch that goes with reading block t of weight row c in a row kernel over kCols weight rows.
-// One row is one stream, prefetched kWeightPrefetchBytes ahead. kCols rows are kCols streams
-// k / 2 bytes apart, which the prefetchers lose (each prefetched that far ahead, the cold decode of
-// 4096 x 4096 fell from 21 to 12 GB/s on the AMD EPYC): instead one sweep over the next kCols rows' bytes,
-// in memory order, as fast as the call reads its own, so that they have all arrived when it ends (21 to
-// 24 GB/s, at the streaming read's speed). Past the end of the weights it touches nothing.
+// The prefetch that goes with reading block t of weight row c in a row kernel over kCols weight rows: one
+// row is one stream, prefetched kWeightPrefetchBytes ahead; several rows, one sweep over the next ones.
 template <int kCols>
 void prefetch_block(const uint8_t* weight_rows, int64_t row_bytes, int64_t t, int c) {
   if constexpr (kCols == 1) {
     prefetch_weights(weight_rows + t * (kBlockColumns / 2));
   } else {
-    _mm_prefetch(reinterpret_cast<const char*>(reinterpret_cast<uintptr_t>(weight_rows) + kCols * row_bytes +
-                                               (t * kCols + c) * (kBlockColumns / 2)),
-                 kWeightPrefetchHint);
+    prefetch_next_rows<kWeightPrefetchHint>(weight_rows, kCols * row_bytes, (t * kCols + c) * (kBlockColumns / 2));
   }
 }
 
@@ -1002,13 +996,17 @@ void gemm_typed(const Element* x, const uint8_t* qweight, const float* scales, c
         });
 #else
     if (use_panels(m, k, kBits)) {
-      const int64_t pitch = block_padded(k);  // zeros past k, which the last quads read
-      std::vector<float> activations(m * pitch, 0.0f);
-      parallel_for(0, m, 16, [&](int64_t row_begin, int64_t row_end) {
-        for (int64_t r = row_begin; r < row_end; ++r) load_row_fp32(x + r * k, k, activations.data() + r * pitch);
+      split_panel_rows(m, n, k, kPanelTileRows, [&](int64_t row_begin, int64_t rows) {
+        const int64_t pitch = block_padded(k);  // zeros past k, which the last quads read
+        std::vector<float> activations(rows * pitch, 0.0f);
+        parallel_for(0, rows, 16, [&](int64_t first, int64_t last) {
+          for (int64_t r = first; r < last; ++r) {
+            load_row_fp32(x + (row_begin + r) * k, k, activations.data() + r * pitch);
+          }
+        });
+        run_panels<Fp32Panel>([&](int64_t r) { return activations.data() + r * pitch; }, qweight, scales, bias, rows,
+                              n, k, group_size, out + row_begin * n);
       });
-      run_panels<Fp32Panel>([&](int64_t r) { return activations.data() + r * pitch; }, qweight, scales, bias, m, n,
-                            k, group_size, out);
       return;
     }
     const std::vector<float> activations = deinterleave_activations(x, m, k);
