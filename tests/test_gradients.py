@@ -53,6 +53,16 @@ def test_bias_gets_its_gradient_when_asked(rng):
     assert torch.equal(bias.grad, torch.full((8,), 3.0))
 
 
+def test_bias_gets_its_gradient_through_the_flag_op_too(rng):
+    qweight, scales = dyq.ops.quantize_weight(random_weight(8, 64, rng), 64)
+    bias = torch.zeros(8, requires_grad=True)
+    x = torch.randn(5, 64, generator=rng, requires_grad=True)
+    grad_out = torch.randn(5, 8, generator=rng)
+    dyq.ops.gemm(x, qweight, scales, 64, dyq.PrecisionFlag(2).tensor, bias).backward(grad_out)
+    assert torch.allclose(bias.grad, grad_out.sum(0))
+    assert x.grad is not None and x.grad.shape == x.shape
+
+
 def test_a_gradient_of_the_packed_weights_is_a_clear_error(rng):
     qweight, scales = dyq.ops.quantize_weight(random_weight(8, 64, rng), 64)
     with pytest.raises(RuntimeError, match="INT4 weights are frozen"):

@@ -56,59 +56,8 @@ def _hadamard_transform_fake(x, signs, left):
     return x.new_empty(x.shape)
 
 
-# ---- autograd: gradients through the frozen INT4 weights ---------------------------------------------
-#
-# The weights are static, so only x (and the bias) get gradients. The activation quantization is treated
-# as the identity in the backward pass (straight-through): the gradient is that of x W^T + bias with the
-# dequantized weight W = s_w * q_w, i.e. grad_x = grad_y W, at every bit-width. This is what LoRA-style
-# adapters on a frozen 4-bit base need (QLoRA's backward through NF4 weights does the same).
-
-def _gemm_setup_context(ctx, inputs, output):
-    x, qweight, scales, group_size, _, bias = inputs[:6]  # gemm_with_flag adds min_act_bits
-    if scales.requires_grad:
-        raise RuntimeError("dyq: the INT4 weights are frozen: scales (and qweight) have no gradient; train "
-                           "adapters beside the layer (LoRA) or the bias instead")
-    ctx.group_size = group_size
-    ctx.x_shape, ctx.x_dtype = x.shape, x.dtype
-    ctx.has_bias = bias is not None
-    ctx.extra_inputs = len(inputs) - 6
-    ctx.save_for_backward(qweight, scales)
-
-
-def _gemm_backward(ctx, grad_out):
-    qweight, scales = ctx.saved_tensors
-    grad_x = grad_bias = None
-    if ctx.needs_input_grad[0]:
-        weight = torch.ops.dyq.dequantize_weight(qweight, scales, ctx.group_size)  # [N, K] fp32
-        grad_x = (grad_out.reshape(-1, weight.shape[0]).float() @ weight).to(ctx.x_dtype).reshape(ctx.x_shape)
-    if ctx.has_bias and ctx.needs_input_grad[5]:
-        grad_bias = grad_out.reshape(-1, grad_out.shape[-1]).sum(dim=0)
-    return (grad_x, None, None, None, None, grad_bias) + (None,) * ctx.extra_inputs
-
-
-torch.library.register_autograd("dyq::gemm", _gemm_backward, setup_context=_gemm_setup_context)
-torch.library.register_autograd("dyq::gemm_with_flag", _gemm_backward, setup_context=_gemm_setup_context)
-
-
-# The rotation is linear: with R = diag(signs) (left (x) H_p) / sqrt(p) and H_p symmetric,
-# grad_x = grad_y R^T = (grad_y (left^T (x) H_p) / sqrt(p)) * signs, the op itself with unit signs and left^T.
-# signs and left are constants of the rotation (no gradient).
-def _hadamard_transform_setup_context(ctx, inputs, output):
-    _, signs, left = inputs
-    ctx.save_for_backward(signs, left)
-
-
-def _hadamard_transform_backward(ctx, grad_out):
-    signs, left = ctx.saved_tensors
-    grad_x = None
-    if ctx.needs_input_grad[0]:
-        rotated = torch.ops.dyq.hadamard_transform(grad_out, torch.ones_like(signs), left.T.contiguous())
-        grad_x = rotated * signs.to(rotated.dtype)
-    return grad_x, None, None
-
-
-torch.library.register_autograd("dyq::hadamard_transform", _hadamard_transform_backward,
-                                setup_context=_hadamard_transform_setup_context)
+# Autograd (gemm and gemm_with_flag through the frozen INT4 weights, hadamard_transform) is registered in
+# C++, csrc/torch/autograd.cpp: a Python autograd kernel would run on every call, gradients or not.
 
 
 def _groups(k, group_size: int):
