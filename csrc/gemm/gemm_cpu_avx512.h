@@ -4,7 +4,7 @@
 // unpacked weights in memory:
 // - act_bits 2/4/8: a 64-byte load holds 128 columns of one weight row. Splitting it into low and high
 //   nibbles gives the even and the odd columns as s8 codes, so the activation codes are stored in the
-//   same even/odd order (QuantizedBlock) and one vpdpbusd (u8 q_x times s8 q_w) per half forms exact
+//   same even/odd order (DecodeBlock) and one vpdpbusd (u8 q_x times s8 q_w) per half forms exact
 //   integer sums of 8 columns per int32 lane. Lane i covers columns 8i..8i+7, hence lies in a single
 //   group for every group size: each lane carries its group's s_x, s_w and z_x, and the zero-point term
 //   z_x * sum(q_w) is subtracted in fp32, which is exact because both are integers below 2^24.
@@ -57,54 +57,10 @@ struct CacheLineAllocator {
 template <typename T>
 using AlignedVector = std::vector<T, CacheLineAllocator<T>>;
 
-// 128 columns of one activation row, in the lane order of the act_bits 2/4/8 kernel.
-struct alignas(64) QuantizedBlock {
-  uint8_t even_codes[64];  // q_x of columns 0, 2, ..., 126
-  uint8_t odd_codes[64];   // q_x of columns 1, 3, ..., 127
-  float zero_lanes[16];    // z_x of the group of columns 8i..8i+7 (0 past k)
-  float scale_lanes[16];   // s_x of that group (0 past k)
-};
-
 inline __m512i even_byte_indices() {
   alignas(64) uint8_t idx[64];
   for (int i = 0; i < 64; ++i) idx[i] = static_cast<uint8_t>(2 * i);
   return _mm512_load_si512(idx);
-}
-
-// Activations quantized into QuantizedBlocks, ceil(k / 128) per row (the last one zero-padded).
-template <typename Element>
-std::vector<QuantizedBlock> quantize_activation_blocks(const Element* x, int64_t m, int64_t k, int group_size,
-                                                       int act_bits) {
-  const int64_t blocks = (k + kBlockColumns - 1) / kBlockColumns;
-  std::vector<QuantizedBlock> quantized(m * blocks);
-  parallel_for(0, m, 4, [&](int64_t row_begin, int64_t row_end) {
-    std::vector<float> row(k);
-    std::vector<uint8_t> codes(blocks * kBlockColumns, 0);
-    std::vector<ActivationGroupParams> params(group_count(k, group_size));
-    const __m512i even = even_byte_indices();
-    const __m512i odd = _mm512_add_epi8(even, _mm512_set1_epi8(1));
-    // Group sizes are powers of two (at least 8, a lane): a shift, where a division per lane cost as
-    // much as the whole quantization of a 128-column block.
-    const int group_shift = __builtin_ctz(group_size);
-    for (int64_t r = row_begin; r < row_end; ++r) {
-      quantize_activation_row(x + r * k, k, group_size, act_bits, row.data(), codes.data(), params.data());
-      for (int64_t t = 0; t < blocks; ++t) {
-        QuantizedBlock& block = quantized[r * blocks + t];
-        const __m512i first = _mm512_loadu_si512(codes.data() + t * kBlockColumns);
-        const __m512i second = _mm512_loadu_si512(codes.data() + t * kBlockColumns + 64);
-        _mm512_store_si512(block.even_codes, _mm512_permutex2var_epi8(first, even, second));
-        _mm512_store_si512(block.odd_codes, _mm512_permutex2var_epi8(first, odd, second));
-        for (int lane = 0; lane < 16; ++lane) {
-          const int64_t column = t * kBlockColumns + 8 * lane;
-          const bool inside = column < k;
-          const ActivationGroupParams& group = params[inside ? column >> group_shift : 0];
-          block.zero_lanes[lane] = inside ? static_cast<float>(group.zero) : 0.0f;
-          block.scale_lanes[lane] = inside ? group.scale : 0.0f;
-        }
-      }
-    }
-  });
-  return quantized;
 }
 
 // Columns rounded up to whole 128-column blocks: the row pitch of the panels' act_bits 16 operands.
@@ -442,26 +398,6 @@ void fp32_row_kernel(const uint8_t* weight_row, const float* scales_row, int64_t
 #include "gemm/gemm_cpu_row_tiles.inc"
 
 #if defined(DYQ_AVX512_HAS_BF16)
-// act_bits 16 on CPUs with AVX512-BF16: x rounded to bf16 (round to nearest even), stored as it comes in
-// rows of kBlockColumns-padded columns (zeros past k), so that the dword at column 2c is the bf16 pair
-// (x[2c], x[2c + 1]) that one vdpbf16ps lane multiplies with the codes of the same two columns.
-template <typename Element>
-AlignedVector<uint16_t> bf16_activations(const Element* x, int64_t m, int64_t k) {
-  const int64_t pitch = block_padded(k);
-  AlignedVector<uint16_t> rounded(m * pitch);
-  parallel_for(0, m, 4, [&](int64_t row_begin, int64_t row_end) {
-    std::vector<float> row(pitch, 0.0f);
-    for (int64_t r = row_begin; r < row_end; ++r) {
-      load_row_fp32(x + r * k, k, row.data());
-      for (int64_t c = 0; c < pitch; c += 16) {
-        const __m256bh halves = _mm512_cvtneps_pbh(_mm512_loadu_ps(row.data() + c));
-        std::memcpy(&rounded[r * pitch + c], &halves, sizeof(halves));
-      }
-    }
-  });
-  return rounded;
-}
-
 // The bf16 bit patterns of the 16 weight codes, indexed by nibble (exact: |q_w| <= 8).
 inline __m512i bf16_code_table() {
   alignas(64) uint16_t table[32] = {};
@@ -627,8 +563,8 @@ void bf16_decode_kernel(const uint8_t* weight_row, const float* scales_row, int6
 // nibbles the even columns, the high nibbles the odd ones. Each panel kind turns that vector into its
 // steps (PanelKind::kSteps per 8 columns):
 // - VnniPanel (act_bits 2/4/8): the s8 codes of the low and of the high nibbles, which vpdpbusd
-//   multiplies with a broadcast dword of the activations' even and odd codes (QuantizedBlock, the
-//   layout of the row kernel), four columns per lane; z_x * sum(q_w) is subtracted per group as there.
+//   multiplies with a broadcast dword of the activations' codes of the same columns (ActivationTiles),
+//   four columns per lane; z_x * sum(q_w) is subtracted per group as in the row kernel.
 // - Bf16Panel (act_bits 16, AVX512-BF16): the bf16 pairs of columns (8q + 2b, 8q + 2b + 1), which
 //   vdpbf16ps multiplies with the broadcast bf16 pair of x at the same columns.
 // - Fp32Panel (act_bits 16 elsewhere): the fp32 code of each of the 8 columns, one FMA with a broadcast x.
@@ -667,30 +603,70 @@ inline void transpose_16x16_dwords(__m512i rows[16]) {
   }
 }
 
+// Activation rows as the panel kernels read them, kPanelTileRows rows at a time (a tile): for quad q
+// (columns 8q..8q+7) and row r of tile t, the Kind::kSteps dwords that the kernel broadcasts at the steps
+// of that quad, at words[((t * quads + q) * kPanelTileRows + r) * kSteps], so that one pointer and constant
+// offsets reach every broadcast of a tile (with a pointer per activation row the compiler spilled them and
+// copied accumulators between registers: 189 to 202 GMAC/s of the VNNI kernel on the AMD EPYC against 210
+// with this layout, of a 234 peak). Columns past k are 0. Kinds with kGroupParams also keep each group's
+// z_x and s_x of the tile's rows: params[((t * groups + g) * 2 + {0: z_x, 1: s_x}) * kPanelTileRows + r].
+struct ActivationTiles {
+  AlignedVector<int32_t> words;
+  AlignedVector<float> params;
+  int64_t quads = 0, groups = 0, steps = 0;
+  const int32_t* tile_words(int64_t tile, int64_t quad) const {
+    return words.data() + (tile * quads + quad) * kPanelTileRows * steps;
+  }
+  const float* tile_params(int64_t tile, int64_t group) const {
+    return params.data() + (tile * groups + group) * 2 * kPanelTileRows;
+  }
+};
+
+// Kind::row_words writes a row's words, the kSteps dwords of quad q at words + q * quad_stride (zero past
+// k), and for VnniPanel its groups' z_x and s_x at zeros[g * pitch] and scales[g * pitch], with this scratch.
+struct RowWordsScratch {
+  explicit RowWordsScratch(int64_t k, int group_size)
+      : row(sixteen_padded(k) + 64, 0.0f), codes(block_padded(k), 0), params(group_count(k, group_size)) {}
+  std::vector<float> row;                    // x in fp32, zero past k
+  AlignedVector<uint8_t> codes;              // q_x, zero past k
+  std::vector<ActivationGroupParams> params;  // (s_x, z_x) per group
+};
+
 struct VnniPanel {
   static constexpr int kSteps = 2;
   static constexpr bool kWeightSums = true;
   static constexpr bool kScaledSteps = false;  // steps of the codes (scales in the epilogue)
-  using Row = const QuantizedBlock*;
+  static constexpr bool kGroupParams = true;
   using Accumulator = __m512i;
   static const char* name() { return "vnni"; }
   static void steps(__m512i quad, __m512i* out) { split_weight_nibbles(quad, out[0], out[1]); }
-  static Row advance(Row row, int64_t columns) { return row + columns / kBlockColumns; }
-  static Accumulator zero() { return _mm512_setzero_si512(); }
-  static __m512i broadcast(Row row, int64_t quad, int step) {
-    const QuantizedBlock& block = row[quad / 16];
-    int32_t codes;
-    std::memcpy(&codes, (step == 0 ? block.even_codes : block.odd_codes) + 4 * (quad % 16), 4);
-    return _mm512_set1_epi32(codes);
+  // Step 0 of a quad: the codes of its even columns, step 1 of its odd ones, in the order of the weight
+  // nibbles (split_weight_nibbles).
+  template <typename Element>
+  static void row_words(const Element* x, int64_t k, int group_size, int act_bits, RowWordsScratch& scratch,
+                        int32_t* words, int64_t quad_stride, float* zeros, float* scales, int64_t pitch) {
+    quantize_activation_row(x, k, group_size, act_bits, scratch.row.data(), scratch.codes.data(),
+                            scratch.params.data());
+    const __m512i even_then_odd = broadcast_i32x4(_mm_setr_epi8(0, 2, 4, 6, 1, 3, 5, 7, 8, 10, 12, 14, 9, 11, 13, 15));
+    const int64_t quads = (k + kQuadColumns - 1) / kQuadColumns;
+    for (int64_t q = 0; q < quads; q += 8) {
+      alignas(64) uint64_t quad_codes[8];
+      _mm512_store_si512(quad_codes, _mm512_shuffle_epi8(_mm512_load_si512(&scratch.codes[8 * q]), even_then_odd));
+      for (int64_t j = 0; j < 8 && q + j < quads; ++j) std::memcpy(words + (q + j) * quad_stride, &quad_codes[j], 8);
+    }
+    for (size_t g = 0; g < scratch.params.size(); ++g) {
+      zeros[g * pitch] = static_cast<float>(scratch.params[g].zero);
+      scales[g * pitch] = scratch.params[g].scale;
+    }
   }
+  static Accumulator zero() { return _mm512_setzero_si512(); }
   static Accumulator madd(Accumulator acc, __m512i activations, __m512i weights) {
     return _mm512_dpbusd_epi32(acc, activations, weights);
   }
-  // total += s_x s_w (P - z_x sum q_w) for the group whose first quad is `quad`.
-  static __m512 scaled(Accumulator acc, Row row, int64_t quad, __m512 weight_scales, __m512 weight_sums) {
-    const QuantizedBlock& block = row[quad / 16];
-    const __m512 partial = _mm512_fnmadd_ps(weight_sums, _mm512_set1_ps(block.zero_lanes[quad % 16]), cvtepi32_ps(acc));
-    return _mm512_mul_ps(partial, _mm512_mul_ps(weight_scales, _mm512_set1_ps(block.scale_lanes[quad % 16])));
+  // total += s_x s_w (P - z_x sum q_w) for activation row r of a tile; params: the tile's of the group.
+  static __m512 scaled(Accumulator acc, const float* params, int r, __m512 weight_scales, __m512 weight_sums) {
+    const __m512 partial = _mm512_fnmadd_ps(weight_sums, _mm512_set1_ps(params[r]), cvtepi32_ps(acc));
+    return _mm512_mul_ps(partial, _mm512_mul_ps(weight_scales, _mm512_set1_ps(params[kPanelTileRows + r])));
   }
 };
 
@@ -699,7 +675,7 @@ struct Bf16Panel {
   static constexpr int kSteps = 4;
   static constexpr bool kWeightSums = false;
   static constexpr bool kScaledSteps = false;  // steps of the codes (scales in the epilogue)
-  using Row = const uint16_t*;
+  static constexpr bool kGroupParams = false;
   using Accumulator = __m512;
   static const char* name() { return "bf16"; }
   static void steps(__m512i quad, __m512i* out) {
@@ -707,17 +683,28 @@ struct Bf16Panel {
     const __m512i low_byte = _mm512_set1_epi32(0xFF);
     for (int b = 0; b < 4; ++b) out[b] = bf16_code_pairs(_mm512_and_si512(srli_epi32(quad, 8 * b), low_byte), table);
   }
-  static Row advance(Row row, int64_t columns) { return row + columns; }
-  static Accumulator zero() { return _mm512_setzero_ps(); }
-  static __m512i broadcast(Row row, int64_t quad, int step) {
-    int32_t pair;
-    std::memcpy(&pair, row + quad * kQuadColumns + 2 * step, 4);
-    return _mm512_set1_epi32(pair);
+  // x rounded to bf16 (to nearest even) in column order: step b of a quad is the pair of its columns
+  // 2b, 2b + 1, as in the steps of the weights.
+  template <typename Element>
+  static void row_words(const Element* x, int64_t k, int, int, RowWordsScratch& scratch, int32_t* words,
+                        int64_t quad_stride, float*, float*, int64_t) {
+    load_row_fp32(x, k, scratch.row.data());
+    const int64_t quads = (k + kQuadColumns - 1) / kQuadColumns;
+    for (int64_t q = 0; q < quads; q += 2) {
+      const __m256i rounded =
+          reinterpret_cast<__m256i>(_mm512_cvtneps_pbh(_mm512_loadu_ps(scratch.row.data() + 8 * q)));
+      _mm_storeu_si128(reinterpret_cast<__m128i*>(words + q * quad_stride), _mm256_castsi256_si128(rounded));
+      if (q + 1 < quads) {
+        _mm_storeu_si128(reinterpret_cast<__m128i*>(words + (q + 1) * quad_stride),
+                         _mm256_extracti128_si256(rounded, 1));
+      }
+    }
   }
+  static Accumulator zero() { return _mm512_setzero_ps(); }
   static Accumulator madd(Accumulator acc, __m512i activations, __m512i weights) {
     return dot_bf16_pairs(acc, activations, weights);
   }
-  static __m512 scaled(Accumulator acc, Row, int64_t, __m512 weight_scales, __m512) {
+  static __m512 scaled(Accumulator acc, const float*, int, __m512 weight_scales, __m512) {
     return _mm512_mul_ps(acc, weight_scales);
   }
 };
@@ -727,25 +714,57 @@ struct Fp32Panel {
   static constexpr int kSteps = 8;
   static constexpr bool kWeightSums = false;
   static constexpr bool kScaledSteps = false;  // steps of the codes (scales in the epilogue)
-  using Row = const float*;
+  static constexpr bool kGroupParams = false;
   using Accumulator = __m512;
   static const char* name() { return "fp32"; }
   static void steps(__m512i quad, __m512i* out) {
     // Nibble j of a dword is column 8q + j: shifted to the top, then arithmetically back down.
     for (int j = 0; j < 8; ++j) out[j] = _mm512_castps_si512(cvtepi32_ps(srai_epi32(slli_epi32(quad, 28 - 4 * j), 28)));
   }
-  static Row advance(Row row, int64_t columns) { return row + columns; }
-  static Accumulator zero() { return _mm512_setzero_ps(); }
-  static __m512i broadcast(Row row, int64_t quad, int step) {
-    return _mm512_castps_si512(_mm512_set1_ps(row[quad * kQuadColumns + step]));
+  // x in fp32, column order: step j of a quad is its column j.
+  template <typename Element>
+  static void row_words(const Element* x, int64_t k, int, int, RowWordsScratch& scratch, int32_t* words,
+                        int64_t quad_stride, float*, float*, int64_t) {
+    load_row_fp32(x, k, scratch.row.data());
+    const int64_t quads = (k + kQuadColumns - 1) / kQuadColumns;
+    for (int64_t q = 0; q < quads; ++q) {
+      _mm256_storeu_ps(reinterpret_cast<float*>(words + q * quad_stride), _mm256_loadu_ps(scratch.row.data() + 8 * q));
+    }
   }
+  static Accumulator zero() { return _mm512_setzero_ps(); }
   static Accumulator madd(Accumulator acc, __m512i activations, __m512i weights) {
     return _mm512_fmadd_ps(_mm512_castsi512_ps(activations), _mm512_castsi512_ps(weights), acc);
   }
-  static __m512 scaled(Accumulator acc, Row, int64_t, __m512 weight_scales, __m512) {
+  static __m512 scaled(Accumulator acc, const float*, int, __m512 weight_scales, __m512) {
     return _mm512_mul_ps(acc, weight_scales);
   }
 };
+
+// The m rows of x as ActivationTiles for the panels of Kind.
+template <typename Kind, typename Element>
+ActivationTiles activation_tiles(const Element* x, int64_t m, int64_t k, int group_size, int act_bits) {
+  ActivationTiles tiles;
+  tiles.quads = (k + kQuadColumns - 1) / kQuadColumns;
+  tiles.groups = group_count(k, group_size);
+  tiles.steps = Kind::kSteps;
+  const int64_t count = (m + kPanelTileRows - 1) / kPanelTileRows;
+  tiles.words.resize(count * tiles.quads * kPanelTileRows * Kind::kSteps);
+  if constexpr (Kind::kGroupParams) tiles.params.resize(count * tiles.groups * 2 * kPanelTileRows);
+  parallel_for(0, count, 1, [&](int64_t first, int64_t last) {
+    RowWordsScratch scratch(k, group_size);
+    for (int64_t t = first; t < last; ++t) {
+      for (int64_t r = 0; r < kPanelTileRows && t * kPanelTileRows + r < m; ++r) {
+        float* zeros = nullptr;
+        if constexpr (Kind::kGroupParams) zeros = tiles.params.data() + t * tiles.groups * 2 * kPanelTileRows + r;
+        Kind::row_words(x + (t * kPanelTileRows + r) * k, k, group_size, act_bits, scratch,
+                        tiles.words.data() + (t * tiles.quads * kPanelTileRows + r) * Kind::kSteps,
+                        kPanelTileRows * Kind::kSteps, zeros, zeros != nullptr ? zeros + kPanelTileRows : nullptr,
+                        2 * kPanelTileRows);
+      }
+    }
+  });
+  return tiles;
+}
 
 template <typename Kind>
 struct WeightPanel {
@@ -818,64 +837,72 @@ struct WeightPanel {
   }
 };
 
-// totals[r][0..32) += the contribution of the panel's `depth` columns for activation rows rows[0..kRows),
-// each pointing at the panel's first column.
+// totals[r][0..32) += the contribution of the panel's `depth` columns for the first kRows rows of a tile;
+// words and params: the tile's at the panel's first quad and first group.
 template <typename Kind, int kRows>
-void panel_kernel(const WeightPanel<Kind>& panel, const typename Kind::Row* rows, int64_t depth, int group_size,
-                  float* totals) {
+void panel_kernel(const WeightPanel<Kind>& panel, const int32_t* words, const float* params, int64_t depth,
+                  int group_size, float* totals) {
   using Accumulator = typename Kind::Accumulator;
+  constexpr int kSteps = Kind::kSteps;
   const int64_t quads = (depth + kQuadColumns - 1) / kQuadColumns;
   const int64_t quads_per_group = group_size / kQuadColumns;
   for (int64_t first = 0; first < quads; first += quads_per_group) {
     Accumulator acc[kRows][2];
     for (int r = 0; r < kRows; ++r) acc[r][0] = acc[r][1] = Kind::zero();
     const int64_t last = std::min(first + quads_per_group, quads);
+    const int32_t* steps = &panel.steps[first * kSteps * kPanelColumns];
+    const int32_t* quad_words = words + first * kPanelTileRows * kSteps;
     for (int64_t quad = first; quad < last; ++quad) {
-      for (int s = 0; s < Kind::kSteps; ++s) {
-        const int32_t* step = &panel.steps[(quad * Kind::kSteps + s) * kPanelColumns];
-        const __m512i low = _mm512_load_si512(step), high = _mm512_load_si512(step + 16);
+      for (int s = 0; s < kSteps; ++s) {
+        const __m512i low = _mm512_load_si512(steps + s * kPanelColumns);
+        const __m512i high = _mm512_load_si512(steps + s * kPanelColumns + 16);
         for (int r = 0; r < kRows; ++r) {
-          const __m512i activations = Kind::broadcast(rows[r], quad, s);
+          const __m512i activations = _mm512_set1_epi32(quad_words[r * kSteps + s]);
           acc[r][0] = Kind::madd(acc[r][0], activations, low);
           acc[r][1] = Kind::madd(acc[r][1], activations, high);
         }
       }
+      steps += kSteps * kPanelColumns;
+      quad_words += kPanelTileRows * kSteps;
     }
     // The totals stay in memory: keeping them in registers too would make the compiler spill the inner loop.
     const int64_t group = first / quads_per_group;
+    const float* group_params = params + group * 2 * kPanelTileRows;
     for (int h = 0; h < 2; ++h) {
       const __m512 weight_scales = _mm512_load_ps(&panel.scales[group * kPanelColumns + 16 * h]);
       const __m512 weight_sums = _mm512_load_ps(&panel.weight_sums[group * kPanelColumns + 16 * h]);
       for (int r = 0; r < kRows; ++r) {
         float* total = totals + r * kPanelColumns + 16 * h;
         _mm512_storeu_ps(total, _mm512_add_ps(_mm512_loadu_ps(total),
-                                              Kind::scaled(acc[r][h], rows[r], first, weight_scales, weight_sums)));
+                                              Kind::scaled(acc[r][h], group_params, r, weight_scales, weight_sums)));
       }
     }
   }
 }
 
-// Threads split the panels; each packs a panel's depth slice once and runs it against every activation row.
-template <typename Kind, typename Element, typename ActivationRow>
-void run_panels(ActivationRow&& activation_row, const uint8_t* qweight, const float* scales, const Element* bias,
+// Threads split the panels; each packs a panel's depth slice once and runs it against every tile of
+// activation rows.
+template <typename Kind, typename Element>
+void run_panels(const ActivationTiles& tiles, const uint8_t* qweight, const float* scales, const Element* bias,
                 int64_t m, int64_t n, int64_t k, int group_size, Element* out) {
   const int64_t panels = (n + kPanelColumns - 1) / kPanelColumns;
   parallel_for(0, panels, 1, [&](int64_t panel_begin, int64_t panel_end) {
     WeightPanel<Kind> panel;
     AlignedVector<float> totals(m * kPanelColumns);  // [m][32]
-    std::vector<typename Kind::Row> rows(m);
     for (int64_t p = panel_begin; p < panel_end; ++p) {
       const int64_t weight_row = p * kPanelColumns;
       std::fill(totals.begin(), totals.end(), 0.0f);
       for (int64_t col = 0; col < k; col += kPanelDepth) {
         const int64_t depth = std::min(kPanelDepth, k - col);
         panel.pack(qweight, scales, n, k, group_size, weight_row, col, depth);
-        for (int64_t r = 0; r < m; ++r) rows[r] = Kind::advance(activation_row(r), col);
         for (int64_t row = 0; row < m; row += kPanelTileRows) {
-          const int tile = static_cast<int>(std::min<int64_t>(kPanelTileRows, m - row));
-          dispatch_tile_rows<kPanelTileRows>(tile, [&](auto tile_rows) {
-            panel_kernel<Kind, decltype(tile_rows)::value>(panel, rows.data() + row, depth, group_size,
-                                                           totals.data() + row * kPanelColumns);
+          const int64_t tile = row / kPanelTileRows;
+          const int rows = static_cast<int>(std::min<int64_t>(kPanelTileRows, m - row));
+          dispatch_tile_rows<kPanelTileRows>(rows, [&](auto tile_rows) {
+            panel_kernel<Kind, decltype(tile_rows)::value>(
+                panel, tiles.tile_words(tile, col / kQuadColumns),
+                Kind::kGroupParams ? tiles.tile_params(tile, col / group_size) : nullptr, depth, group_size,
+                totals.data() + row * kPanelColumns);
           });
         }
       }
@@ -885,6 +912,17 @@ void run_panels(ActivationRow&& activation_row, const uint8_t* qweight, const fl
                             out + row * n + weight_row);
       }
     }
+  });
+}
+
+// The panel path: the activation rows as tiles (once per thread where split_panel_rows splits them), then
+// the panels.
+template <typename Kind, typename Element>
+void panel_gemm(const Element* x, const uint8_t* qweight, const float* scales, const Element* bias, int64_t m,
+                int64_t n, int64_t k, int group_size, int act_bits, Element* out) {
+  split_panel_rows(m, n, k, kPanelTileRows, [&](int64_t row_begin, int64_t rows) {
+    const ActivationTiles tiles = activation_tiles<Kind>(x + row_begin * k, rows, k, group_size, act_bits);
+    run_panels<Kind>(tiles, qweight, scales, bias, rows, n, k, group_size, out + row_begin * n);
   });
 }
 
@@ -952,13 +990,7 @@ void gemm_typed(const Element* x, const uint8_t* qweight, const float* scales, c
     }
 #endif
     if (use_panels(m, k, kBits)) {
-      split_panel_rows(m, n, k, kPanelTileRows, [&](int64_t row_begin, int64_t rows) {
-        const int64_t blocks = (k + kBlockColumns - 1) / kBlockColumns;
-        const std::vector<QuantizedBlock> activations =
-            quantize_activation_blocks(x + row_begin * k, rows, k, group_size, kBits);
-        run_panels<VnniPanel>([&](int64_t r) { return activations.data() + r * blocks; }, qweight, scales, bias, rows,
-                              n, k, group_size, out + row_begin * n);
-      });
+      panel_gemm<VnniPanel>(x, qweight, scales, bias, m, n, k, group_size, kBits, out);
       return;
     }
     const DecodeActivations activations = decode_activations(x, m, k, group_size, kBits);
@@ -978,12 +1010,7 @@ void gemm_typed(const Element* x, const uint8_t* qweight, const float* scales, c
 #endif
 #if defined(DYQ_AVX512_HAS_BF16)
     if (use_panels(m, k, kBits)) {
-      split_panel_rows(m, n, k, kPanelTileRows, [&](int64_t row_begin, int64_t rows) {
-        const AlignedVector<uint16_t> activations = bf16_activations(x + row_begin * k, rows, k);
-        const int64_t pitch = block_padded(k);
-        run_panels<Bf16Panel>([&](int64_t r) { return activations.data() + r * pitch; }, qweight, scales, bias, rows,
-                              n, k, group_size, out + row_begin * n);
-      });
+      panel_gemm<Bf16Panel>(x, qweight, scales, bias, m, n, k, group_size, kBits, out);
       return;
     }
     const Bf16DecodeActivations activations = bf16_decode_activations(x, m, k, group_size);
@@ -996,17 +1023,7 @@ void gemm_typed(const Element* x, const uint8_t* qweight, const float* scales, c
         });
 #else
     if (use_panels(m, k, kBits)) {
-      split_panel_rows(m, n, k, kPanelTileRows, [&](int64_t row_begin, int64_t rows) {
-        const int64_t pitch = block_padded(k);  // zeros past k, which the last quads read
-        std::vector<float> activations(rows * pitch, 0.0f);
-        parallel_for(0, rows, 16, [&](int64_t first, int64_t last) {
-          for (int64_t r = first; r < last; ++r) {
-            load_row_fp32(x + (row_begin + r) * k, k, activations.data() + r * pitch);
-          }
-        });
-        run_panels<Fp32Panel>([&](int64_t r) { return activations.data() + r * pitch; }, qweight, scales, bias, rows,
-                              n, k, group_size, out + row_begin * n);
-      });
+      panel_gemm<Fp32Panel>(x, qweight, scales, bias, m, n, k, group_size, kBits, out);
       return;
     }
     const std::vector<float> activations = deinterleave_activations(x, m, k);
