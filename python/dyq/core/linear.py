@@ -9,6 +9,9 @@ from . import ops
 from .precision import check_bits, check_group_size
 
 ACTIVATION_DTYPES = (torch.float32, torch.bfloat16, torch.float16)
+# The ops' overloads themselves: resolving torch.ops.dyq.gemm on every call costs time a small layer notices.
+_GEMM = torch.ops.dyq.gemm.default
+_GEMM_WITH_FLAG = torch.ops.dyq.gemm_with_flag.default
 
 
 def _check_features(value, name: str) -> int:
@@ -172,12 +175,15 @@ class DyQLinear(nn.Module):
                              f"got {tuple(x.shape)}")
         if self.in_features % 2:
             x = nn.functional.pad(x, (0, 1))  # the zero column of the packed weight
-        bias = self.bias
+        # The tensors straight from the module's dicts: nn.Module.__getattr__ costs about 1 us a name, a
+        # sixth of a small layer's call at one activation row.
+        bias = self._parameters["bias"]
         if bias is not None and bias.dtype != x.dtype:
             bias = bias.to(x.dtype)
+        qweight, scales = self._buffers["qweight"], self._buffers["scales"]
         if self.flag is None:
-            return ops.gemm(x, self.qweight, self.scales, self.group_size, self.precision, bias)
-        return ops.gemm(x, self.qweight, self.scales, self.group_size, self.flag.tensor, bias, self.min_act_bits)
+            return _GEMM(x, qweight, scales, self.group_size, max(self.act_bits, self.min_act_bits), bias)
+        return _GEMM_WITH_FLAG(x, qweight, scales, self.group_size, self.flag.tensor, bias, self.min_act_bits)
 
     # -- module plumbing ---------------------------------------------------------------------------------------
     def _apply(self, fn, recurse=True):
