@@ -202,11 +202,17 @@ DecodeActivations decode_activations(const Element* x, int64_t m, int64_t k, int
 // AMX, 2 KiB ahead into L1; on an AMD EPYC (Zen 4, the avx512_bf16 path), where that left the integer
 // kernels' cold decode at 11 GB/s on one thread (W4A16 at 18), 4 KiB ahead into L2 reached 18 to 21 GB/s
 // (bench_linear.py, M = 1, cold), presumably as the faster integer kernels ran out of L1 fill buffers.
+// Further ahead still paid on one thread there (C++ loop, alternating builds, cold 4096 x 4096 and
+// 11008 x 4096): the rows kernels' sweep at least 16 KiB ahead rather than just over the next rows' bytes
+// (8 KiB at K = 4096) took W4A8 from 23.5-24.8 to 26.4-28.5 GB/s, and W4A16's single stream 8 KiB ahead
+// rather than 4 from 19-20 to 20.5-21 GB/s, about the streaming read's 24-26 GB/s in the same loop.
 #if defined(DYQ_AVX512_HAS_AMX)
 constexpr int64_t kWeightPrefetchBytes = 2048;
+constexpr int64_t kSweepAheadBytes = 0;  // the next rows' bytes
 constexpr _mm_hint kWeightPrefetchHint = _MM_HINT_T0;
 #else
-constexpr int64_t kWeightPrefetchBytes = 4096;
+constexpr int64_t kWeightPrefetchBytes = 8192;
+constexpr int64_t kSweepAheadBytes = 16384;
 constexpr _mm_hint kWeightPrefetchHint = _MM_HINT_T1;
 #endif
 
@@ -257,13 +263,15 @@ inline __m512 block_lanes(const float* per_group, int64_t t, int group_size, int
 inline int64_t sixteen_padded(int64_t count) { return (count + 15) / 16 * 16; }
 
 // The prefetch that goes with reading block t of weight row c in a row kernel over kCols weight rows: one
-// row is one stream, prefetched kWeightPrefetchBytes ahead; several rows, one sweep over the next ones.
+// row is one stream, prefetched kWeightPrefetchBytes ahead; several rows, one sweep in memory order over
+// the bytes after the call's own rows, at least kSweepAheadBytes ahead of the sweep's start.
 template <int kCols>
 void prefetch_block(const uint8_t* weight_rows, int64_t row_bytes, int64_t t, int c) {
   if constexpr (kCols == 1) {
     prefetch_weights(weight_rows + t * (kBlockColumns / 2));
   } else {
-    prefetch_next_rows<kWeightPrefetchHint>(weight_rows, kCols * row_bytes, (t * kCols + c) * (kBlockColumns / 2));
+    prefetch_next_rows<kWeightPrefetchHint>(weight_rows, std::max(kCols * row_bytes, kSweepAheadBytes),
+                                            (t * kCols + c) * (kBlockColumns / 2));
   }
 }
 
