@@ -69,9 +69,13 @@ constexpr int64_t kChunkColumns = 16;     // act_bits 16: columns in 8 bytes of 
 constexpr int kMaxTileRows = 4;           // activation rows that share one pass over a weight row
 // How far ahead of its loads a row kernel prefetches, into L2: on the AMD EPYC (Zen 4) forced to this path,
 // 1 KiB ahead into L1 left the integer kernels' cold M = 1 decode of the Llama-7B shapes at 44 to 61 % of
-// the streaming read on one thread (45 to 57 % on two), 4 KiB into L2 reached 70 to 86 % (79 to 102 %).
-// No AVX2-only CPU was measured.
-constexpr int64_t kPrefetchBytes = 4096;
+// the streaming read on one thread (45 to 57 % on two), 4 KiB into L2 reached 70 to 86 % (79 to 102 %);
+// 8 KiB, with the two-row kernels' sweep over the next rows at least 16 KiB ahead (kSweepAheadBytes), took
+// W4A8 from 12.4-15.5 to 15.0-15.7 GB/s on one thread and from 25.8-29.5 to 29.3-30.9 on two in alternating
+// runs (W4A16 unchanged, bound by its arithmetic at 9 GB/s on one thread there). No AVX2-only CPU was
+// measured.
+constexpr int64_t kPrefetchBytes = 8192;
+constexpr int64_t kSweepAheadBytes = 16384;
 
 // ---- row kernels, act_bits 2/4/8 --------------------------------------------------------------------
 
@@ -208,7 +212,8 @@ void decode_int_kernel(const uint8_t* weight_rows, const float* scales_rows, int
                    _MM_HINT_T1);
     } else {  // the next rows in one sweep: the kCols / 2 lines this step reads of its own rows
       for (int line = 0; line < kCols / 2; ++line) {
-        prefetch_next_rows<_MM_HINT_T1>(weight_rows, kCols * row_bytes, t * kCols * (kBlockColumns / 2) + 64 * line);
+        prefetch_next_rows<_MM_HINT_T1>(weight_rows, std::max(kCols * row_bytes, kSweepAheadBytes),
+                                        t * kCols * (kBlockColumns / 2) + 64 * line);
       }
     }
     for (int chain = 0; chain < kChains; ++chain) accumulate(t + chain, chain, false);
