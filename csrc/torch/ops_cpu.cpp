@@ -118,7 +118,8 @@ struct CpuGemm {
   static std::pair<Precision, int64_t> from_flag(const at::Tensor& flag, const at::Tensor&, int64_t min_bits) {
     TORCH_CHECK(flag.device().is_cpu(), "dyq: act_bits_flag must be a CPU (host) tensor for CPU inputs, got ",
                 flag.device());
-    const int64_t flag_bits = flag.item<int32_t>();
+    // The one int32 read in place (check_flag_tensor: int32, one element): item() would be a dispatcher call.
+    const int64_t flag_bits = *flag.const_data_ptr<int32_t>();
     TORCH_CHECK(is_valid_act_bits(flag_bits), "dyq: act_bits_flag holds ", flag_bits, "; expected ",
                 registered_act_bits_text());
     const int64_t act_bits = std::max(flag_bits, min_bits);
