@@ -37,11 +37,13 @@ float reduce_lanes(__m256 v) {
 // cold decode of 4096 x 4096 fell from 21 to 12 GB/s on the AMD EPYC. Instead one sweep over the next
 // rows' bytes in memory order, as fast as the call reads its own, so that they have all arrived when it
 // ends (21 to 24 GB/s there, at the streaming read's speed): the line `read_bytes` into the rows after
-// the call's `rows_bytes`. Past the end of the weights it touches nothing (a prefetch does not fault).
-template <_mm_hint kHint>
+// the call's `rows_bytes`, or, where those are fewer than kMinAheadBytes, into the bytes that far past the
+// call's first (further ahead still paid on one thread; each path says how far). Past the end of the weights
+// it touches nothing (a prefetch does not fault).
+template <_mm_hint kHint, int64_t kMinAheadBytes = 0>
 void prefetch_next_rows(const uint8_t* weight_rows, int64_t rows_bytes, int64_t read_bytes) {
-  _mm_prefetch(reinterpret_cast<const char*>(reinterpret_cast<uintptr_t>(weight_rows) + rows_bytes + read_bytes),
-               kHint);
+  const int64_t ahead = rows_bytes > kMinAheadBytes ? rows_bytes : kMinAheadBytes;
+  _mm_prefetch(reinterpret_cast<const char*>(reinterpret_cast<uintptr_t>(weight_rows) + ahead + read_bytes), kHint);
 }
 
 #if defined(DYQ_CPU_ISA_AVX512)

@@ -212,8 +212,8 @@ void decode_int_kernel(const uint8_t* weight_rows, const float* scales_rows, int
                    _MM_HINT_T1);
     } else {  // the next rows in one sweep: the kCols / 2 lines this step reads of its own rows
       for (int line = 0; line < kCols / 2; ++line) {
-        prefetch_next_rows<_MM_HINT_T1>(weight_rows, std::max(kCols * row_bytes, kSweepAheadBytes),
-                                        t * kCols * (kBlockColumns / 2) + 64 * line);
+        prefetch_next_rows<_MM_HINT_T1, kSweepAheadBytes>(weight_rows, kCols * row_bytes,
+                                                          t * kCols * (kBlockColumns / 2) + 64 * line);
       }
     }
     for (int chain = 0; chain < kChains; ++chain) accumulate(t + chain, chain, false);

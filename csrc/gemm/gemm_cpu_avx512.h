@@ -63,7 +63,7 @@ inline __m512i even_byte_indices() {
   return _mm512_load_si512(idx);
 }
 
-// Columns rounded up to whole 128-column blocks: the row pitch of the panels' act_bits 16 operands.
+// Columns rounded up to whole 128-column blocks (whole 64-byte loads of codes).
 inline int64_t block_padded(int64_t k) { return (k + kBlockColumns - 1) / kBlockColumns * kBlockColumns; }
 
 // Columns rounded up to whole 32-column chunks: the row pitch of the act_bits 16 operand.
@@ -270,8 +270,8 @@ void prefetch_block(const uint8_t* weight_rows, int64_t row_bytes, int64_t t, in
   if constexpr (kCols == 1) {
     prefetch_weights(weight_rows + t * (kBlockColumns / 2));
   } else {
-    prefetch_next_rows<kWeightPrefetchHint>(weight_rows, std::max(kCols * row_bytes, kSweepAheadBytes),
-                                            (t * kCols + c) * (kBlockColumns / 2));
+    prefetch_next_rows<kWeightPrefetchHint, kSweepAheadBytes>(weight_rows, kCols * row_bytes,
+                                                              (t * kCols + c) * (kBlockColumns / 2));
   }
 }
 
@@ -585,6 +585,9 @@ constexpr int64_t kQuadColumns = 8;     // columns in one dword of packed weight
 constexpr int64_t kPanelQuads = kPanelDepth / kQuadColumns;
 constexpr int64_t kPanelGroups = kPanelDepth / 32;  // at the smallest group size
 
+// Quads (8 columns) that `columns` columns span, the last one partial where 8 does not divide them.
+inline int64_t quad_count(int64_t columns) { return (columns + kQuadColumns - 1) / kQuadColumns; }
+
 // rows[i] (dwords 0..15 of row i) becomes rows[q] = dword q of rows 0..15 (vector lane i).
 inline void transpose_16x16_dwords(__m512i rows[16]) {
   __m512i t[16], u[16];
@@ -656,7 +659,7 @@ struct VnniPanel {
     quantize_activation_row(x, k, group_size, act_bits, scratch.row.data(), scratch.codes.data(),
                             scratch.params.data());
     const __m512i even_then_odd = broadcast_i32x4(_mm_setr_epi8(0, 2, 4, 6, 1, 3, 5, 7, 8, 10, 12, 14, 9, 11, 13, 15));
-    const int64_t quads = (k + kQuadColumns - 1) / kQuadColumns;
+    const int64_t quads = quad_count(k);
     for (int64_t q = 0; q < quads; q += 8) {
       alignas(64) uint64_t quad_codes[8];
       _mm512_store_si512(quad_codes, _mm512_shuffle_epi8(_mm512_load_si512(&scratch.codes[8 * q]), even_then_odd));
@@ -697,7 +700,7 @@ struct Bf16Panel {
   static void row_words(const Element* x, int64_t k, int, int, RowWordsScratch& scratch, int32_t* words,
                         int64_t quad_stride, float*, float*, int64_t) {
     load_row_fp32(x, k, scratch.row.data());
-    const int64_t quads = (k + kQuadColumns - 1) / kQuadColumns;
+    const int64_t quads = quad_count(k);
     for (int64_t q = 0; q < quads; q += 2) {
       const __m256i rounded =
           reinterpret_cast<__m256i>(_mm512_cvtneps_pbh(_mm512_loadu_ps(scratch.row.data() + 8 * q)));
@@ -734,7 +737,7 @@ struct Fp32Panel {
   static void row_words(const Element* x, int64_t k, int, int, RowWordsScratch& scratch, int32_t* words,
                         int64_t quad_stride, float*, float*, int64_t) {
     load_row_fp32(x, k, scratch.row.data());
-    const int64_t quads = (k + kQuadColumns - 1) / kQuadColumns;
+    const int64_t quads = quad_count(k);
     for (int64_t q = 0; q < quads; ++q) {
       _mm256_storeu_ps(reinterpret_cast<float*>(words + q * quad_stride), _mm256_loadu_ps(scratch.row.data() + 8 * q));
     }
@@ -752,7 +755,7 @@ struct Fp32Panel {
 template <typename Kind, typename Element>
 ActivationTiles activation_tiles(const Element* x, int64_t m, int64_t k, int group_size, int act_bits) {
   ActivationTiles tiles;
-  tiles.quads = (k + kQuadColumns - 1) / kQuadColumns;
+  tiles.quads = quad_count(k);
   tiles.groups = group_count(k, group_size);
   tiles.steps = Kind::kSteps;
   const int64_t count = (m + kPanelTileRows - 1) / kPanelTileRows;
@@ -785,7 +788,7 @@ struct WeightPanel {
   void pack(const uint8_t* qweight, const float* all_scales, int64_t n, int64_t k, int group_size, int64_t row_begin,
             int64_t col_begin, int64_t depth) {
     const int64_t groups = group_count(k, group_size);
-    const int64_t quads = (depth + kQuadColumns - 1) / kQuadColumns;
+    const int64_t quads = quad_count(depth);
     const int64_t quads_per_group = group_size / kQuadColumns;
     const int64_t first_group = col_begin / group_size;
     const int64_t panel_groups = group_count(depth, group_size);
@@ -852,7 +855,7 @@ void panel_kernel(const WeightPanel<Kind>& panel, const int32_t* words, const fl
                   int group_size, float* totals) {
   using Accumulator = typename Kind::Accumulator;
   constexpr int kSteps = Kind::kSteps;
-  const int64_t quads = (depth + kQuadColumns - 1) / kQuadColumns;
+  const int64_t quads = quad_count(depth);
   const int64_t quads_per_group = group_size / kQuadColumns;
   for (int64_t first = 0; first < quads; first += quads_per_group) {
     Accumulator acc[kRows][2];
