@@ -6,7 +6,12 @@ Peers: torch's fp32 and bf16 ``nn.Linear`` (oneDNN), its INT4 weight-only kernel
 
 Each (shape, M) is timed hot (one copy of the weights, resident in the caches as far as they fit) and
 cold (as many copies as fill four times the last-level cache, called in turn, so that every call reads
-its weights from memory). The same run measures the machine's streaming-read bandwidth (a sum over
+its weights from memory). The layers of one (shape, M, mode) are timed in turns, each round calling every
+one once, so that each ratio compares calls made under the same conditions of a shared machine; hot,
+each timed call follows an untimed one of the same layer, which brings back what the others evicted.
+Decode (M = 1, cold) is the exception: a bandwidth measurement, it times one layer's calls after another's,
+as a decode streams the weights of one layer after another's (in turns with the other layers' cold reads
+between its calls, W4A8 on 4096 x 4096 took 9 % longer on the AMD EPYC). The same run measures the machine's streaming-read bandwidth (a sum over
 1 GiB at the same thread count), once per thread count and again right before and after each shape's
 decode timings, and the decode table states dyq's effective bandwidth at M = 1, cold (the bytes of its
 packed weights and scales over the median time) as a share of both: on a shared machine the bandwidth
@@ -34,7 +39,7 @@ import torch
 import torch.nn.functional as F
 
 import dyq
-from dyq.results import environment, median_ms, print_table, write_json
+from dyq.results import environment, interleaved_median_ms, median_ms, print_table, write_json
 
 GROUP_SIZE = 128
 LLAMA_7B_SHAPES = [(4096, 4096), (11008, 4096), (4096, 11008)]  # (N, K): attention, MLP up/gate, MLP down
@@ -115,6 +120,11 @@ def int4_torch_layer(weight: torch.Tensor):
             packed.nbytes + scale_and_zeros.nbytes)
 
 
+def set_act_bits(layers, bits: int) -> None:
+    for layer in layers:
+        layer.act_bits = bits
+
+
 def peer_layers(linear: torch.nn.Linear) -> dict:
     """name -> (factory of a fresh copy, bytes of its weights, input dtype)."""
     weight = linear.weight.detach()
@@ -146,22 +156,33 @@ def time_shape(n: int, k: int, batches, modes, repeats: int, cache_bytes: int) -
         for m in batches:
             x = torch.randn(m, k)
             reps = max(5, repeats // 3) if m >= 64 else repeats
-            timings, kernels = {}, {}
+            candidates = {}
+            for name, (rotation, dtype) in rotations.items():
+                candidates[name] = (lambda rotation=rotation, inputs=x.to(dtype): rotation(inputs))
+            for bits in BITS:
+                candidates[f"w4a{bits}"] = (lambda bits=bits: set_act_bits(dyq_rotation.layers, bits),
+                                            lambda: dyq_rotation(x))
+            kernels = {f"w4a{bits}": dyq.cpu_gemm_kernel(m, k, GROUP_SIZE, bits) for bits in BITS}
+            # Decode's bandwidth share is taken against a streaming read timed right before and after it: on
+            # a shared machine the bandwidth moves within a run (the run-level read stays too).
+            decode = cold and m == 1
+            stream_around = [stream_read_gbps(STREAM_REPEATS_AROUND)] if decode else []
             with torch.inference_mode():
-                for name, (rotation, dtype) in rotations.items():
-                    inputs = x.to(dtype)
-                    timings[name] = median_ms(lambda: rotation(inputs), repeats=reps)
-                # Decode's bandwidth share is taken against a streaming read timed right before and after
-                # it: on a shared machine the bandwidth moves within a run (the run-level read stays too).
-                decode = cold and m == 1
-                stream_around = [stream_read_gbps(STREAM_REPEATS_AROUND)] if decode else []
-                for bits in BITS:
-                    for copy_ in dyq_rotation.layers:
-                        copy_.act_bits = bits
-                    timings[f"w4a{bits}"] = median_ms(lambda: dyq_rotation(x), repeats=reps)
-                    kernels[f"w4a{bits}"] = dyq.cpu_gemm_kernel(m, k, GROUP_SIZE, bits)
                 if decode:
-                    stream_around.append(stream_read_gbps(STREAM_REPEATS_AROUND))
+                    # One layer after another, as a decode streams one layer's weights after another's: the
+                    # bandwidth measurement, between the two streaming reads.
+                    timings = {}
+                    for name, entry in candidates.items():
+                        prepare, fn = entry if isinstance(entry, tuple) else (None, entry)
+                        if prepare is not None:
+                            prepare()
+                        timings[name] = median_ms(fn, repeats=reps)
+                else:
+                    # In turns, so that every ratio compares calls made under the same conditions; hot calls
+                    # each after an untimed one of their own, as the other layers' calls evicted their weights.
+                    timings = interleaved_median_ms(candidates, warmup=3, repeats=reps, rewarm=not cold)
+            if decode:
+                stream_around.append(stream_read_gbps(STREAM_REPEATS_AROUND))
             result = {"m": m, "n": n, "k": k, "mode": mode, "group_size": GROUP_SIZE, "median_ms": timings,
                       "dyq_kernel": kernels, "copies": len(dyq_rotation.layers),
                       "weight_bytes": {"dyq": dyq_bytes, **{p: peers[p][1] for p in peers}}}
@@ -251,7 +272,10 @@ def main() -> None:
     payload = {"benchmark": "linear_cpu", "environment": {**environment(), "cpu_flags": cpu_flags(),
                                                           "last_level_cache_bytes": cache_bytes,
                                                           "dyq_cpu_paths": dyq.cpu_info()["runnable"]},
-               "group_size": GROUP_SIZE, "peers": PEERS, "runs": runs}
+               "group_size": GROUP_SIZE, "peers": PEERS,
+               "timing": "interleaved: each round calls every layer once; hot calls each after an untimed one; "
+                         "M = 1 cold one layer after another",
+               "runs": runs}
     path = write_json(args.out, payload)
     print(f"\nwrote {path}")
 

@@ -10,7 +10,9 @@ dyq runs ``dyq.quantize_model`` on a copy of the model in its base dtype (its LM
 outside the linear layers stay in that dtype) and then sets the width with ``dyq.set_precision``. The base
 is bf16 where the CPU computes in bf16 (dyq's ``avx512_bf16`` and ``amx`` paths), as in the bf16
 baseline, and fp32 elsewhere: on a CPU without bf16 dot products oneDNN emulates bf16, and a user would
-not run the rest of the model in it (``--dyq-base`` overrides). Beside the median step time, a second,
+not run the rest of the model in it (``--dyq-base`` overrides). The models are timed in turns (each repeat
+runs every one once), so that a drift of a shared machine reaches all of them alike, first the whole steps
+and then the prefills alone. Beside the median step time, a second,
 instrumented pass records the share of the step spent inside dyq's GEMMs (forward hooks on every
 DyQLinear); the rest is attention, norms, the LM head and framework overhead.
 
@@ -30,7 +32,7 @@ from pathlib import Path
 import torch
 
 import dyq
-from dyq.results import environment, median_ms, print_table, write_json
+from dyq.results import environment, interleaved_median_ms, print_table, write_json
 from dyq.sim.policy import cache_keyword
 
 ACTION_TOKENS = 7
@@ -120,21 +122,27 @@ def time_config(name: str, prompt: int, repeats: int, dyq_base: str) -> dict:
     quantized = copy.deepcopy(bf16 if dyq_base == "bf16" else fp32)
     dyq.quantize_model(quantized)
     prompt_ids = torch.randint(3, settings["vocab_size"], (1, prompt))
-    timings, prefill_ms, shares, kernels = {}, {}, {}, {}
+    # Every model in turns (interleaved_median_ms), dyq's widths each set right before its call.
+    models = {"fp32": (None, fp32), "bf16": (None, bf16)}
+    for bits in BITS:
+        models[f"w4a{bits}"] = ((lambda bits=bits: dyq.set_precision(quantized, bits)), quantized)
+
+    def candidates(run):
+        return {label: (prepare, lambda model=model: run(model, prompt_ids)) for label, (prepare, model) in models.items()}
+
+    shares, kernels = {}, {}
     with torch.inference_mode():
-        for label, model in [("fp32", fp32), ("bf16", bf16)]:
-            timings[label] = median_ms(lambda: control_step(model, prompt_ids), warmup=1, repeats=repeats)
-            prefill_ms[label] = median_ms(lambda: prefill(model, prompt_ids), warmup=1, repeats=repeats)
+        timings = interleaved_median_ms(candidates(control_step), warmup=1, repeats=repeats)
+        prefill_ms = interleaved_median_ms(candidates(prefill), warmup=1, repeats=repeats)
         for bits in BITS:
             label = f"w4a{bits}"
             dyq.set_precision(quantized, bits)
-            timings[label] = median_ms(lambda: control_step(quantized, prompt_ids), warmup=1, repeats=repeats)
-            prefill_ms[label] = median_ms(lambda: prefill(quantized, prompt_ids), warmup=1, repeats=repeats)
             shares[label] = gemm_share(quantized, lambda: control_step(quantized, prompt_ids))
             kernels[label] = {"prefill": dyq.cpu_gemm_kernel(prompt, settings["hidden_size"], 128, bits),
                               "decode": dyq.cpu_gemm_kernel(1, settings["hidden_size"], 128, bits)}
     return {"config": name, "settings": settings, "parameters": parameters, "prompt_tokens": prompt,
             "decoded_tokens": ACTION_TOKENS, "prefill_logits": "last position", "dyq_base_dtype": dyq_base,
+            "timing": "interleaved: each repeat runs every model once, in turns",
             "step_ms": timings, "prefill_ms": prefill_ms, "dyq_gemm_share": shares,
             "dyq_kernel": kernels}
 

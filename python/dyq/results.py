@@ -73,6 +73,39 @@ def median_ms(fn, *, warmup: int = 3, repeats: int = 15, min_seconds: float = 0.
     return statistics.median(times)
 
 
+def interleaved_median_ms(candidates: dict, *, warmup: int = 1, repeats: int = 15, rewarm: bool = False) -> dict:
+    """Median wall milliseconds of each candidate, timed in turns: every round calls each candidate once,
+    starting one further along each round, so that all of them meet the same drifts of a shared machine
+    (on a 2-core VM the same bf16 control step took 32 ms in one minute and 42 in the next, which moved
+    ratios of candidates timed one after another by a fifth).
+
+    ``candidates`` maps a name to fn, or to (prepare, fn) where prepare() runs untimed before each call
+    of fn (to set a precision, say). With ``rewarm`` every timed call follows an untimed one of the same
+    candidate, which brings back into the caches what the other candidates' calls evicted."""
+    calls = {name: entry if isinstance(entry, tuple) else (None, entry) for name, entry in candidates.items()}
+    if warmup < 0 or repeats < 1:
+        raise ValueError(f"warmup must be >= 0 and repeats >= 1, got {warmup} and {repeats}")
+    for prepare, fn in calls.values():
+        for _ in range(warmup):
+            if prepare is not None:
+                prepare()
+            fn()
+    names = list(calls)
+    times = {name: [] for name in names}
+    for round_ in range(repeats):
+        for i in range(len(names)):
+            name = names[(round_ + i) % len(names)]
+            prepare, fn = calls[name]
+            if prepare is not None:
+                prepare()
+            if rewarm:
+                fn()
+            t0 = time.perf_counter()
+            fn()
+            times[name].append((time.perf_counter() - t0) * 1e3)
+    return {name: statistics.median(values) for name, values in times.items()}
+
+
 def cuda_median_ms(fn, *, warmup: int, repeats: int) -> float:
     """Median milliseconds of fn() over ``repeats`` runs, each bracketed by CUDA events."""
     for _ in range(warmup):

@@ -1,0 +1,59 @@
+"""dyq.results.interleaved_median_ms: the order of the calls and the medians, on a clock the test drives."""
+import pytest
+
+import dyq.results as results
+
+
+class FakeClock:
+    def __init__(self):
+        self.now = 0.0
+
+    def perf_counter(self):
+        return self.now
+
+
+@pytest.fixture
+def clock(monkeypatch):
+    fake = FakeClock()
+    monkeypatch.setattr(results.time, "perf_counter", fake.perf_counter)
+    return fake
+
+
+def test_candidates_take_turns_and_each_median_is_its_own(clock):
+    log = []
+
+    def call(name, seconds):
+        def fn():
+            log.append(name)
+            clock.now += seconds
+        return fn
+
+    durations = {"a": [0.002, 0.004, 0.003], "b": [0.010, 0.030, 0.020], "c": [0.001, 0.001, 0.005]}
+    counters = {name: iter(values) for name, values in durations.items()}
+    candidates = {name: (lambda name=name: call(name, next(counters[name]))()) for name in durations}
+    medians = results.interleaved_median_ms(candidates, warmup=0, repeats=3)
+    # Round r starts r places further along.
+    assert log == ["a", "b", "c", "b", "c", "a", "c", "a", "b"]
+    assert medians == pytest.approx({"a": 3.0, "b": 20.0, "c": 1.0})
+
+
+def test_prepare_runs_untimed_before_each_call_and_rewarm_adds_an_untimed_call(clock):
+    log = []
+
+    def prepare():
+        log.append("prepare")
+        clock.now += 1.0  # never counted
+
+    def fn():
+        log.append("fn")
+        clock.now += 0.004
+
+    medians = results.interleaved_median_ms({"x": (prepare, fn)}, warmup=1, repeats=2, rewarm=True)
+    assert log == ["prepare", "fn"] + ["prepare", "fn", "fn"] * 2
+    assert medians == pytest.approx({"x": 4.0})
+
+
+@pytest.mark.parametrize("warmup, repeats", [(-1, 3), (0, 0)])
+def test_bad_counts_are_refused(warmup, repeats):
+    with pytest.raises(ValueError, match="warmup must be >= 0 and repeats >= 1"):
+        results.interleaved_median_ms({"x": lambda: None}, warmup=warmup, repeats=repeats)
