@@ -140,14 +140,16 @@ struct DecodeActivations {
   DecodeRow row(int64_t r) const { return {blocks.data() + r * blocks_per_row, scales.data() + r * groups}; }
 };
 
+// `centred`: the codes stored as a = q_x - z_x, for decode_int_kernel<..., kWideCodes = false>; possible
+// for act_bits 2 and 4 only.
 template <typename Element>
-DecodeActivations decode_activations(const Element* x, int64_t m, int64_t k, int group_size, int act_bits) {
+DecodeActivations decode_activations(const Element* x, int64_t m, int64_t k, int group_size, int act_bits,
+                                     bool centred) {
   DecodeActivations out;
   out.blocks_per_row = (k + kBlockColumns - 1) / kBlockColumns;
   out.groups = group_count(k, group_size);
   out.blocks.resize(m * out.blocks_per_row);
   out.scales.resize(m * out.groups);
-  const bool centred = act_bits != 8;
   const int group_shift = __builtin_ctz(group_size);  // group sizes are powers of two, at least 8 (a lane)
   std::vector<float> row(k);
   std::vector<uint8_t> codes(out.blocks_per_row * kBlockColumns, 0);  // zero past k
@@ -274,6 +276,16 @@ void prefetch_block(const uint8_t* weight_rows, int64_t row_bytes, int64_t t, in
                                                               (t * kCols + c) * (kBlockColumns / 2));
   }
 }
+
+// Packed weights up to this size take act_bits 2 and 4 in the centred form of the row kernel, larger ones
+// in act_bits 8's; both give the same integer P. The centred form spends two vpdpbusd per lane rather than
+// three, and on weights in cache it was the faster (M = 1, one thread on the AMD EPYC, weights in L3: 15 %
+// to 18 % faster than A8 on the Llama-7B shapes). Streamed from memory, as a model too large for the
+// caches decodes, it was the slower: 23 against 25.5 to 26 GB/s on 4096 x 11008 in a C++ loop, and in a
+// torch process 7 % to 30 % slower than A8 on each Llama-7B shape, where A8's form ties A8 (that virtual
+// machine exposes no performance counters that could say why). Layers of a megabyte or less, such as the
+// closed-loop policy's, are the ones a decode finds in cache.
+constexpr int64_t kCentredDecodeMaxWeightBytes = int64_t{1} << 20;
 
 // Weight rows that one call of a row kernel covers with kRows activation rows: a few at once share the
 // activation loads, the per-call set-up and the horizontal sums, which for short weight rows cost more than
@@ -1004,13 +1016,18 @@ void gemm_typed(const Element* x, const uint8_t* qweight, const float* scales, c
       panel_gemm<VnniPanel>(x, qweight, scales, bias, m, n, k, group_size, kBits, out);
       return;
     }
-    const DecodeActivations activations = decode_activations(x, m, k, group_size, kBits);
+    const bool centred = kBits != 8 && n * (k / 2) <= kCentredDecodeMaxWeightBytes;
+    const DecodeActivations activations = decode_activations(x, m, k, group_size, kBits, centred);
     run_tiles<kMaxTileRows, decode_columns>(
         qweight, scales, bias, m, n, k, group_size, out, [&](int64_t r) { return activations.row(r); },
         [&](auto tile_rows, auto tile_columns, const uint8_t* weight_rows, const float* scales_rows,
             const DecodeRow* rows, float* sums) {
-          decode_int_kernel<decltype(tile_rows)::value, decltype(tile_columns)::value, kBits == 8>(
-              weight_rows, scales_rows, k, group_size, rows, sums);
+          constexpr int kRows = decltype(tile_rows)::value, kCols = decltype(tile_columns)::value;
+          if (centred) {
+            decode_int_kernel<kRows, kCols, false>(weight_rows, scales_rows, k, group_size, rows, sums);
+          } else {
+            decode_int_kernel<kRows, kCols, true>(weight_rows, scales_rows, k, group_size, rows, sums);
+          }
         });
   } else {
 #if defined(DYQ_AVX512_HAS_AMX)

@@ -304,6 +304,21 @@ TEST_P(GemmEdgeTest, ExtremeCodesStayExact) {
   }
 }
 
+// Decode of weights on either side of the AVX-512 path's switch of act_bits 2 and 4 from the centred row
+// kernel to act_bits 8's (at 1 MiB of packed weights), K not a multiple of the group size.
+class GemmDecodeFormTest : public ::testing::TestWithParam<int> {};
+
+TEST_P(GemmDecodeFormTest, MatchesNaiveReferenceOnEitherSideOfTheSwitch) {
+  const int act_bits = GetParam();
+  constexpr int64_t k = 1058;  // 529 bytes a row: 1900 rows take 1 005 100 bytes, 2100 rows 1 110 900
+  uint32_t seed = 3000u + act_bits;
+  for (const int64_t n : {1900, 2100}) {
+    for (const int64_t m : {1, 3, 7}) check_problem({m, n, k, 64, act_bits, m == 3, seed++}, ScalarType::kFloat32);
+  }
+}
+
+INSTANTIATE_TEST_SUITE_P(IntegerWidths, GemmDecodeFormTest, ::testing::Values(2, 4, 8));
+
 // Around the CPU's switch from the row kernels (decode) to the panel path (at 8 rows on the AVX2 and
 // AVX-512 paths), with N not a multiple of the panels' 16 outputs and K not a multiple of the group size, on
 // fresh random inputs for every width and group size.
