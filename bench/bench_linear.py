@@ -11,7 +11,8 @@ one once, so that each ratio compares calls made under the same conditions of a 
 each timed call follows an untimed one of the same layer, which brings back what the others evicted.
 Decode (M = 1, cold) is the exception: a bandwidth measurement, it times one layer's calls after another's,
 as a decode streams the weights of one layer after another's (in turns with the other layers' cold reads
-between its calls, W4A8 on 4096 x 4096 took 9 % longer on the AMD EPYC). The same run measures the machine's streaming-read bandwidth (a sum over
+between its calls, W4A8 on 4096 x 4096 took 9 % longer on the AMD EPYC); only dyq's widths, which read
+the same copies, take turns there. The same run measures the machine's streaming-read bandwidth (a sum over
 1 GiB at the same thread count), once per thread count and again right before and after each shape's
 decode timings, and the decode table states dyq's effective bandwidth at M = 1, cold (the bytes of its
 packed weights and scales over the median time) as a share of both: on a shared machine the bandwidth
@@ -156,12 +157,10 @@ def time_shape(n: int, k: int, batches, modes, repeats: int, cache_bytes: int) -
         for m in batches:
             x = torch.randn(m, k)
             reps = max(5, repeats // 3) if m >= 64 else repeats
-            candidates = {}
-            for name, (rotation, dtype) in rotations.items():
-                candidates[name] = (lambda rotation=rotation, inputs=x.to(dtype): rotation(inputs))
-            for bits in BITS:
-                candidates[f"w4a{bits}"] = (lambda bits=bits: set_act_bits(dyq_rotation.layers, bits),
-                                            lambda: dyq_rotation(x))
+            peer_calls = {name: (lambda rotation=rotation, inputs=x.to(dtype): rotation(inputs))
+                          for name, (rotation, dtype) in rotations.items()}
+            width_calls = {f"w4a{bits}": (lambda bits=bits: set_act_bits(dyq_rotation.layers, bits),
+                                          lambda: dyq_rotation(x)) for bits in BITS}
             kernels = {f"w4a{bits}": dyq.cpu_gemm_kernel(m, k, GROUP_SIZE, bits) for bits in BITS}
             # Decode's bandwidth share is taken against a streaming read timed right before and after it: on
             # a shared machine the bandwidth moves within a run (the run-level read stays too).
@@ -170,17 +169,15 @@ def time_shape(n: int, k: int, batches, modes, repeats: int, cache_bytes: int) -
             with torch.inference_mode():
                 if decode:
                     # One layer after another, as a decode streams one layer's weights after another's: the
-                    # bandwidth measurement, between the two streaming reads.
-                    timings = {}
-                    for name, entry in candidates.items():
-                        prepare, fn = entry if isinstance(entry, tuple) else (None, entry)
-                        if prepare is not None:
-                            prepare()
-                        timings[name] = median_ms(fn, repeats=reps)
+                    # bandwidth measurement, between the two streaming reads. dyq's widths share one rotation
+                    # of copies, so they still take turns.
+                    timings = {name: median_ms(fn, repeats=reps) for name, fn in peer_calls.items()}
+                    timings.update(interleaved_median_ms(width_calls, warmup=3, repeats=reps))
                 else:
                     # In turns, so that every ratio compares calls made under the same conditions; hot calls
                     # each after an untimed one of their own, as the other layers' calls evicted their weights.
-                    timings = interleaved_median_ms(candidates, warmup=3, repeats=reps, rewarm=not cold)
+                    timings = interleaved_median_ms({**peer_calls, **width_calls}, warmup=3, repeats=reps,
+                                                    rewarm=not cold)
             if decode:
                 stream_around.append(stream_read_gbps(STREAM_REPEATS_AROUND))
             result = {"m": m, "n": n, "k": k, "mode": mode, "group_size": GROUP_SIZE, "median_ms": timings,
@@ -274,7 +271,7 @@ def main() -> None:
                                                           "dyq_cpu_paths": dyq.cpu_info()["runnable"]},
                "group_size": GROUP_SIZE, "peers": PEERS,
                "timing": "interleaved: each round calls every layer once; hot calls each after an untimed one; "
-                         "M = 1 cold one layer after another",
+                         "M = 1 cold one peer after another, dyq's widths in turns",
                "runs": runs}
     path = write_json(args.out, payload)
     print(f"\nwrote {path}")
