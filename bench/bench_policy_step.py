@@ -128,7 +128,8 @@ def time_config(name: str, prompt: int, repeats: int, dyq_base: str) -> dict:
         models[f"w4a{bits}"] = ((lambda bits=bits: dyq.set_precision(quantized, bits)), quantized)
 
     def candidates(run):
-        return {label: (prepare, lambda model=model: run(model, prompt_ids)) for label, (prepare, model) in models.items()}
+        return {label: (prepare, lambda model=model: run(model, prompt_ids))
+                for label, (prepare, model) in models.items()}
 
     shares, kernels = {}, {}
     with torch.inference_mode():
