@@ -14,7 +14,9 @@ not run the rest of the model in it (``--dyq-base`` overrides). The models are t
 runs every one once), so that a drift of a shared machine reaches all of them alike, first the whole steps
 and then the prefills alone. Beside the median step time, a second,
 instrumented pass records the share of the step spent inside dyq's GEMMs (forward hooks on every
-DyQLinear); the rest is attention, norms, the LM head and framework overhead.
+DyQLinear); the rest is attention, norms, the LM head and framework overhead. Each model's memory is the
+bytes of its parameters and buffers (``model_bytes``): dyq's holds the INT4 codes, their fp32 scales and
+the parts it does not convert (embeddings, norms, the LM head) in its base dtype.
 
     python bench/bench_policy_step.py                  # both configs
     python bench/bench_policy_step.py --config policy --prompt 256
@@ -110,6 +112,12 @@ def gemm_share(model, step) -> float:
     return spent[0] / total
 
 
+def model_bytes(model) -> int:
+    """Bytes of the model's parameters and buffers, each tensor once (a tied weight is one)."""
+    tensors = {id(t): t for t in [*model.parameters(), *model.buffers()]}
+    return sum(t.numel() * t.element_size() for t in tensors.values())
+
+
 def default_dyq_base() -> str:
     return "bf16" if dyq.cpu_info()["isa"] in BF16_PATHS else "fp32"
 
@@ -121,6 +129,7 @@ def time_config(name: str, prompt: int, repeats: int, dyq_base: str) -> dict:
     bf16 = copy.deepcopy(fp32).to(torch.bfloat16)
     quantized = copy.deepcopy(bf16 if dyq_base == "bf16" else fp32)
     dyq.quantize_model(quantized)
+    memory = {"fp32": model_bytes(fp32), "bf16": model_bytes(bf16), "dyq": model_bytes(quantized)}
     prompt_ids = torch.randint(3, settings["vocab_size"], (1, prompt))
     # Every model in turns (interleaved_median_ms), dyq's widths each set right before its call.
     models = {"fp32": (None, fp32), "bf16": (None, bf16)}
@@ -145,7 +154,7 @@ def time_config(name: str, prompt: int, repeats: int, dyq_base: str) -> dict:
             "decoded_tokens": ACTION_TOKENS, "prefill_logits": "last position", "dyq_base_dtype": dyq_base,
             "timing": "interleaved: each repeat runs every model once, in turns",
             "step_ms": timings, "prefill_ms": prefill_ms, "dyq_gemm_share": shares,
-            "dyq_kernel": kernels}
+            "dyq_kernel": kernels, "model_bytes": memory}
 
 
 def main() -> None:
@@ -169,12 +178,13 @@ def main() -> None:
         for label in labels:
             step, pre = r["step_ms"][label], r["prefill_ms"][label]
             share = r["dyq_gemm_share"].get(label)
+            memory = r["model_bytes"][label if label in ("fp32", "bf16") else "dyq"]
             rows.append([f"{r['config']} ({r['parameters'] / 1e6:.0f} M)", r["prompt_tokens"], label, f"{step:.1f}",
                          f"{pre:.1f}", f"{step - pre:.1f}", f"{r['step_ms']['fp32'] / step:.2f}x",
                          f"{r['step_ms']['bf16'] / step:.2f}x",
-                         "" if share is None else f"{100 * share:.0f} %"])
+                         "" if share is None else f"{100 * share:.0f} %", f"{memory / 2**20:.1f}"])
     print_table(["config", "prompt", "model", "step ms", "prefill ms", "decode ms", "fp32 / this", "bf16 / this",
-                 "in dyq GEMMs"],
+                 "in dyq GEMMs", "model MiB"],
                 rows, title=f"One control step (prefill + {ACTION_TOKENS} decoded tokens), {args.threads} thread(s), "
                             f"dyq on the {dyq_base} model, CPU path {dyq.cpu_info()['isa']}")
     load_after = os.getloadavg()

@@ -52,3 +52,16 @@ def test_bench_policy_step_times_a_control_step_at_every_width(tmp_path):
     assert set(step["dyq_gemm_share"]) == {"w4a16", "w4a8", "w4a4", "w4a2"}
     assert all(0 < share < 1 for share in step["dyq_gemm_share"].values())
     assert step["dyq_kernel"]["w4a2"]["decode"] == dyq.cpu_gemm_kernel(1, step["settings"]["hidden_size"], 128, 2)
+    # Memory from the config alone: every linear but the LM head becomes INT4 codes (half a byte a weight)
+    # and one fp32 scale per 128 inputs; the rest stays in the base dtype.
+    settings = step["settings"]
+    hidden, inner, layers = settings["hidden_size"], settings["intermediate_size"], settings["num_hidden_layers"]
+    linears = [(hidden, hidden)] * 4 + [(inner, hidden)] * 2 + [(hidden, inner)]
+    linear_weights = layers * sum(n * k for n, k in linears)
+    int4_bytes = layers * sum(n * k // 2 + n * -(-k // 128) * 4 for n, k in linears)
+    memory = step["model_bytes"]
+    other_fp32 = memory["fp32"] - 4 * linear_weights  # embeddings, norms, LM head, rotary buffers
+    assert other_fp32 > 0
+    assert memory["bf16"] == 2 * linear_weights + other_fp32 // 2
+    base = 2 if expected_base == "bf16" else 4
+    assert memory["dyq"] == int4_bytes + other_fp32 // 4 * base
