@@ -172,3 +172,29 @@ def test_product_out_of_the_output_range_is_an_error(rng):
         dyq.ops.gemm(x, qweight, scales, 64, 16)
     with raises("out of the range of Half"):
         dyq.ops.gemm(x, qweight, scales, 64, 8)
+
+
+@pytest.mark.parametrize("dtype", (torch.float16, torch.bfloat16))
+@pytest.mark.parametrize("threads", (1, 2))
+def test_one_overflowing_output_is_an_error_on_every_kernel(dtype, threads, rng):
+    """A single output beyond the dtype's range, wherever it lies, fails the call: the CPU kernels check the
+    outputs as each thread writes them (the decode rows, the panels, the threads' shares of rows)."""
+    big = 60000.0 if dtype == torch.float16 else 3e38
+    n, k = 96, 256
+    w = random_weight(n, k, rng) * 1e-3
+    previous = torch.get_num_threads()
+    torch.set_num_threads(threads)
+    try:
+        for m in (1, 3, 7, 40):
+            for act_bits in (16, 8):
+                row, column = int(torch.randint(m, (1,), generator=rng)), int(torch.randint(n, (1,), generator=rng))
+                weight = w.clone()
+                weight[column] = 1.0
+                qweight, scales = dyq.ops.quantize_weight(weight, 128)
+                x = (torch.rand(m, k, generator=rng) - 0.5).to(dtype)
+                assert torch.isfinite(dyq.ops.gemm(x, qweight, scales, 128, act_bits)).all()
+                x[row] = big  # the true product of that row and weight row is k times beyond the range
+                with raises(f"out of the range of {'Half' if dtype == torch.float16 else 'BFloat16'}"):
+                    dyq.ops.gemm(x, qweight, scales, 128, act_bits)
+    finally:
+        torch.set_num_threads(previous)

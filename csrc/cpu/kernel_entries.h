@@ -18,40 +18,6 @@
 #include "cpu/isa_region.h"
 #include "parallel/parallel.h"
 
-DYQ_ISA_BEGIN
-namespace dyq::cpu::DYQ_ISA_NAMESPACE {
-namespace {
-
-// Whether no value is inf or NaN (no exponent all ones), in chunks without an early exit inside, which the
-// compiler vectorizes. Compiled in the path's region, so at its vector width: at the baseline's 4 lanes
-// this scan of a GEMM's outputs cost a tenth of an AMX GEMM of 256 rows of a 256 x 256 layer. The 16-bit
-// types are tested on their own bits: widened to fp32 one by one, the scan of 65536 bf16 outputs took
-// 67 us, half of the GEMM that wrote them.
-template <typename Value>
-bool all_finite(const Value* values, int64_t count) {
-  using Bits = std::conditional_t<sizeof(Value) == 2, uint16_t, uint32_t>;
-  static_assert(sizeof(Value) == sizeof(Bits), "fp32, bf16 or fp16");
-  constexpr Bits kExponent = std::is_same_v<Value, Eigen::half> ? Bits{0x7C00}
-                             : std::is_same_v<Value, Eigen::bfloat16> ? Bits{0x7F80}
-                                                                        : static_cast<Bits>(0x7F800000u);
-  constexpr int64_t kChunk = 256;
-  for (int64_t begin = 0; begin < count; begin += kChunk) {
-    const int64_t end = std::min(count, begin + kChunk);
-    Bits exponent_all_ones = 0;
-    for (int64_t i = begin; i < end; ++i) {
-      Bits bits;
-      std::memcpy(&bits, values + i, sizeof(bits));
-      exponent_all_ones |= (bits & kExponent) == kExponent ? Bits{1} : Bits{0};
-    }
-    if (exponent_all_ones != 0) return false;
-  }
-  return true;
-}
-
-}  // namespace
-}  // namespace dyq::cpu::DYQ_ISA_NAMESPACE
-DYQ_ISA_END
-
 namespace dyq::cpu::DYQ_ISA_NAMESPACE {
 namespace {
 
@@ -131,7 +97,8 @@ void hadamard_transform(const void* x, ScalarType dtype, const float* signs, con
   });
 }
 
-// Rows whose output is not finite although their x, the bias and the weight scales are: an fp32
+// After a GEMM whose outputs were not all finite (gemm_typed said so), the rows whose output is not finite
+// although their x, the bias and the weight scales are: an fp32
 // intermediate overflowed (x near FLT_MAX makes sum x q_w overflow at 16 bits, or groups of opposite sign
 // meet as inf - inf). Such a row is computed again from x scaled by 2^-shift, which is exact: every
 // quantity of the format scales with x (s_x does, the codes and P do not), so the sums are the same
@@ -141,7 +108,6 @@ template <typename Element, typename Compute>
 bool recompute_overflowed_rows(const Element* x, const float* scales, const Element* bias, int64_t m, int64_t n,
                                int64_t k, int group_size, Element* out, Compute&& compute) {
   auto finite = [](const auto* values, int64_t count) { return all_finite(values, count); };
-  if (finite(out, m * n)) return true;
   if (!finite(scales, n * group_count(k, group_size)) || (bias != nullptr && !finite(bias, n))) return true;
   bool in_range = true;
   std::vector<Element> row(k), row_bias(bias != nullptr ? n : 0), row_out(n);
@@ -185,14 +151,16 @@ bool gemm(const void* x, ScalarType dtype, const uint8_t* qweight, const float* 
     dispatch_act_bits(
         act_bits,
         [&](auto bits) {
+          // Returns whether every output is finite (gemm_typed checks them as its threads write them).
           auto compute = [&](const Element* rows_x, const Element* rows_bias, int64_t rows, Element* rows_out) {
-            gemm_typed<decltype(bits)::value>(rows_x, qweight, scales, rows_bias, rows, n, k, group_size, rows_out);
+            return gemm_typed<decltype(bits)::value>(rows_x, qweight, scales, rows_bias, rows, n, k, group_size,
+                                                     rows_out);
           };
           const auto* typed_x = static_cast<const Element*>(x);
           const auto* typed_bias = static_cast<const Element*>(bias);
           auto* typed_out = static_cast<Element*>(out);
-          compute(typed_x, typed_bias, m, typed_out);
-          in_range = recompute_overflowed_rows(typed_x, scales, typed_bias, m, n, k, group_size, typed_out, compute);
+          in_range = compute(typed_x, typed_bias, m, typed_out) ||
+                     recompute_overflowed_rows(typed_x, scales, typed_bias, m, n, k, group_size, typed_out, compute);
         },
         [] {});
   });

@@ -541,8 +541,9 @@ constexpr int64_t kAmxPanelsPerPass = Kind::kDequantizedWeights ? 8 : 2;
 // Panel is ScalarAmxPanel<Kind> or a packer of the same layout. Threads split the panels of 32 output rows; each
 // configures its own tiles, takes its panels kAmxPanelsPerPass at a time, unpacks each slice of them once,
 // runs the slice against every activation row, and keeps the running totals of their outputs for all rows.
+// Returns whether every output is finite.
 template <typename Tiles, typename Kind, typename Panel, typename Element>
-void amx_gemm(const Element* x, const uint8_t* qweight, const float* scales, const Element* bias, int64_t m, int64_t n,
+bool amx_gemm(const Element* x, const uint8_t* qweight, const float* scales, const Element* bias, int64_t m, int64_t n,
               int64_t k, int group_size, int act_bits, Element* out) {
   constexpr int64_t kPanelsPerPass = kAmxPanelsPerPass<Kind>;
   const AmxActivations<Kind> a = amx_activations<Kind>(x, m, k, group_size, act_bits);
@@ -556,6 +557,7 @@ void amx_gemm(const Element* x, const uint8_t* qweight, const float* scales, con
   const int64_t a_step_bytes = kAmxRowBlock * step_bytes;                                  // a block's step
   const int64_t b_step_bytes = step_columns / (kAmxQuadColumns / Kind::kStepsPerQuad) * kBStride;  // B tile rows
   const int64_t panels = (n + kAmxPanelColumns - 1) / kAmxPanelColumns;
+  FiniteOutputs finite;
   parallel_for(0, panels, 1, [&](int64_t panel_begin, int64_t panel_end) {
     Tiles tiles;
     tiles.configure(step_bytes);
@@ -576,8 +578,8 @@ void amx_gemm(const Element* x, const uint8_t* qweight, const float* scales, con
       const int64_t columns = std::min(kAmxPanelColumns, n - weight_row);
       for (int64_t r = 0; r < rows; ++r) {
         const float* total = block_totals + r * kAmxPanelColumns;
-        store_row_from_fp32(total, bias != nullptr ? bias + weight_row : nullptr, columns,
-                            out + (row_begin + r) * n + weight_row);
+        finite.note(store_row_from_fp32(total, bias != nullptr ? bias + weight_row : nullptr, columns,
+                                        out + (row_begin + r) * n + weight_row));
       }
     };
     // Adds a group's contribution to the totals of its block of rows (the int8 kinds).
@@ -670,6 +672,7 @@ void amx_gemm(const Element* x, const uint8_t* qweight, const float* scales, con
     }
     tiles.release();
   });
+  return finite.all();
 }
 
 }  // namespace dyq::cpu::DYQ_ISA_NAMESPACE

@@ -577,12 +577,14 @@ struct Fp32Panel {
 };
 
 // Threads split the panels; each decodes a panel's slice of columns once and runs it against every
-// activation row. Slices are whole groups (Kind::kDepth is a multiple of every group size).
+// activation row. Slices are whole groups (Kind::kDepth is a multiple of every group size). Returns whether
+// every output is finite.
 template <typename Kind, typename Element, typename ActivationRow>
-void run_panels(ActivationRow&& activation_row, const uint8_t* qweight, const float* scales, const Element* bias,
+bool run_panels(ActivationRow&& activation_row, const uint8_t* qweight, const float* scales, const Element* bias,
                 int64_t m, int64_t n, int64_t k, int group_size, Element* out) {
   const int64_t panels = (n + kPanelOutputs - 1) / kPanelOutputs;
   const int64_t padded = group_padded(k, group_size);
+  FiniteOutputs finite;
   parallel_for(0, panels, 1, [&](int64_t panel_begin, int64_t panel_end) {
     typename Kind::WeightPanel panel;
     std::vector<float> totals(m * kPanelOutputs);  // [m][16]
@@ -605,11 +607,12 @@ void run_panels(ActivationRow&& activation_row, const uint8_t* qweight, const fl
       }
       const int64_t outputs = std::min(kPanelOutputs, n - row_begin);
       for (int64_t r = 0; r < m; ++r) {
-        store_row_from_fp32(&totals[r * kPanelOutputs], bias != nullptr ? bias + row_begin : nullptr, outputs,
-                            out + r * n + row_begin);
+        finite.note(store_row_from_fp32(&totals[r * kPanelOutputs], bias != nullptr ? bias + row_begin : nullptr,
+                                        outputs, out + r * n + row_begin));
       }
     }
   });
+  return finite.all();
 }
 
 // Whether m activation rows take the panel path rather than the row kernels, which need no packing but pay
@@ -618,14 +621,15 @@ void run_panels(ActivationRow&& activation_row, const uint8_t* qweight, const fl
 // the policy's shapes) and from 5 at W4A16 (1.05x to 1.4x). No AVX2-only CPU was measured.
 inline bool use_panels(int64_t m, int act_bits) { return m >= (act_bits == kFallbackBits ? 5 : 4); }
 
+// out = x W^T (+ bias) at kBits; returns whether every output is finite.
 template <int kBits, typename Element>
-void gemm_typed(const Element* x, const uint8_t* qweight, const float* scales, const Element* bias, int64_t m,
+bool gemm_typed(const Element* x, const uint8_t* qweight, const float* scales, const Element* bias, int64_t m,
                 int64_t n, int64_t k, int group_size, Element* out) {
   if constexpr (ActivationTraits<kBits>::kQuantized) {
     if (use_panels(m, kBits)) {
-      split_panel_rows(m, n, k, IntPanel::kTileRows, [&](int64_t row_begin, int64_t rows) {
+      return split_panel_rows(m, n, k, IntPanel::kTileRows, [&](int64_t row_begin, int64_t rows) {
         const PanelCodes activations = panel_codes(x + row_begin * k, rows, k, group_size, kBits);
-        run_panels<IntPanel>(
+        return run_panels<IntPanel>(
             [&](int64_t r) {
               return IntPanelRow{activations.codes.data() + r * activations.pitch,
                                  activations.scales.data() + r * activations.groups,
@@ -633,11 +637,10 @@ void gemm_typed(const Element* x, const uint8_t* qweight, const float* scales, c
             },
             qweight, scales, bias, rows, n, k, group_size, out + row_begin * n);
       });
-      return;
     }
     const int64_t blocks = (k + kBlockColumns - 1) / kBlockColumns;
     const std::vector<DecodeBlock> activations = decode_activations(x, m, k, group_size, kBits);
-    run_tiles<kMaxTileRows, decode_columns>(
+    return run_tiles<kMaxTileRows, decode_columns>(
         qweight, scales, bias, m, n, k, group_size, out, [&](int64_t r) { return activations.data() + r * blocks; },
         [&](auto tile_rows, auto tile_columns, const uint8_t* weight_rows, const float* scales_rows,
             const DecodeBlock* const* rows, float* sums) {
@@ -647,20 +650,20 @@ void gemm_typed(const Element* x, const uint8_t* qweight, const float* scales, c
   } else {
     const int64_t pitch = group_padded(k, group_size);
     if (use_panels(m, kBits)) {
-      split_panel_rows(m, n, k, Fp32Panel::kTileRows, [&](int64_t row_begin, int64_t rows) {
+      return split_panel_rows(m, n, k, Fp32Panel::kTileRows, [&](int64_t row_begin, int64_t rows) {
         std::vector<float> activations(rows * pitch, 0.0f);
         parallel_for(0, rows, 16, [&](int64_t first, int64_t last) {
           for (int64_t r = first; r < last; ++r) {
             load_row_fp32(x + (row_begin + r) * k, k, activations.data() + r * pitch);
           }
         });
-        run_panels<Fp32Panel>([&](int64_t r) { return static_cast<const float*>(activations.data() + r * pitch); },
-                              qweight, scales, bias, rows, n, k, group_size, out + row_begin * n);
+        return run_panels<Fp32Panel>(
+            [&](int64_t r) { return static_cast<const float*>(activations.data() + r * pitch); }, qweight, scales, bias,
+            rows, n, k, group_size, out + row_begin * n);
       });
-      return;
     }
     const std::vector<float> activations = deinterleave_activations(x, m, k, group_size);
-    run_tiles<kMaxTileRows>(
+    return run_tiles<kMaxTileRows>(
         qweight, scales, bias, m, n, k, group_size, out, [&](int64_t r) { return activations.data() + r * pitch; },
         [&](auto tile_rows, auto, const uint8_t* weight_row, const float* scales_row, const float* const* rows,
             float* sums) {

@@ -908,11 +908,12 @@ void panel_kernel(const WeightPanel<Kind>& panel, const int32_t* words, const fl
 }
 
 // Threads split the panels; each packs a panel's depth slice once and runs it against every tile of
-// activation rows.
+// activation rows. Returns whether every output is finite.
 template <typename Kind, typename Element>
-void run_panels(const ActivationTiles& tiles, const uint8_t* qweight, const float* scales, const Element* bias,
+bool run_panels(const ActivationTiles& tiles, const uint8_t* qweight, const float* scales, const Element* bias,
                 int64_t m, int64_t n, int64_t k, int group_size, Element* out) {
   const int64_t panels = (n + kPanelColumns - 1) / kPanelColumns;
+  FiniteOutputs finite;
   parallel_for(0, panels, 1, [&](int64_t panel_begin, int64_t panel_end) {
     WeightPanel<Kind> panel;
     AlignedVector<float> totals(m * kPanelColumns);  // [m][32]
@@ -935,21 +936,22 @@ void run_panels(const ActivationTiles& tiles, const uint8_t* qweight, const floa
       }
       const int64_t columns = std::min(kPanelColumns, n - weight_row);
       for (int64_t row = 0; row < m; ++row) {
-        store_row_from_fp32(&totals[row * kPanelColumns], bias != nullptr ? bias + weight_row : nullptr, columns,
-                            out + row * n + weight_row);
+        finite.note(store_row_from_fp32(&totals[row * kPanelColumns], bias != nullptr ? bias + weight_row : nullptr,
+                                        columns, out + row * n + weight_row));
       }
     }
   });
+  return finite.all();
 }
 
 // The panel path: the activation rows as tiles (once per thread where split_panel_rows splits them), then
-// the panels.
+// the panels. Returns whether every output is finite.
 template <typename Kind, typename Element>
-void panel_gemm(const Element* x, const uint8_t* qweight, const float* scales, const Element* bias, int64_t m,
+bool panel_gemm(const Element* x, const uint8_t* qweight, const float* scales, const Element* bias, int64_t m,
                 int64_t n, int64_t k, int group_size, int act_bits, Element* out) {
-  split_panel_rows(m, n, k, kPanelTileRows, [&](int64_t row_begin, int64_t rows) {
+  return split_panel_rows(m, n, k, kPanelTileRows, [&](int64_t row_begin, int64_t rows) {
     const ActivationTiles tiles = activation_tiles<Kind>(x + row_begin * k, rows, k, group_size, act_bits);
-    run_panels<Kind>(tiles, qweight, scales, bias, rows, n, k, group_size, out + row_begin * n);
+    return run_panels<Kind>(tiles, qweight, scales, bias, rows, n, k, group_size, out + row_begin * n);
   });
 }
 
@@ -1000,29 +1002,28 @@ static_assert(VnniPanel::kSteps == AmxInt8::kStepsPerQuad && DequantizedBf16Pane
               "the AMX tile loop reads the panels' layout");
 #endif
 
+// out = x W^T (+ bias) at kBits; returns whether every output is finite.
 template <int kBits, typename Element>
-void gemm_typed(const Element* x, const uint8_t* qweight, const float* scales, const Element* bias, int64_t m, int64_t n,
+bool gemm_typed(const Element* x, const uint8_t* qweight, const float* scales, const Element* bias, int64_t m, int64_t n,
                 int64_t k, int group_size, Element* out) {
   if constexpr (ActivationTraits<kBits>::kQuantized) {
 #if defined(DYQ_AVX512_HAS_AMX)
     if (m >= kAmxMinRows) {
       if constexpr (kBits <= 4) {
-        amx_gemm<NativeTiles, AmxInt8Centered, WeightPanel<VnniPanelUnsummed>>(x, qweight, scales, bias, m, n, k,
-                                                                              group_size, kBits, out);
+        return amx_gemm<NativeTiles, AmxInt8Centered, WeightPanel<VnniPanelUnsummed>>(x, qweight, scales, bias, m,
+                                                                                     n, k, group_size, kBits, out);
       } else {
-        amx_gemm<NativeTiles, AmxInt8, WeightPanel<VnniPanel>>(x, qweight, scales, bias, m, n, k, group_size, kBits,
-                                                               out);
+        return amx_gemm<NativeTiles, AmxInt8, WeightPanel<VnniPanel>>(x, qweight, scales, bias, m, n, k, group_size,
+                                                                      kBits, out);
       }
-      return;
     }
 #endif
     if (use_panels(m, k, kBits)) {
-      panel_gemm<VnniPanel>(x, qweight, scales, bias, m, n, k, group_size, kBits, out);
-      return;
+      return panel_gemm<VnniPanel>(x, qweight, scales, bias, m, n, k, group_size, kBits, out);
     }
     const bool centred = kBits != 8 && n * (k / 2) <= kCentredDecodeMaxWeightBytes;
     const DecodeActivations activations = decode_activations(x, m, k, group_size, kBits, centred);
-    run_tiles<kMaxTileRows, decode_columns>(
+    return run_tiles<kMaxTileRows, decode_columns>(
         qweight, scales, bias, m, n, k, group_size, out, [&](int64_t r) { return activations.row(r); },
         [&](auto tile_rows, auto tile_columns, const uint8_t* weight_rows, const float* scales_rows,
             const DecodeRow* rows, float* sums) {
@@ -1036,18 +1037,17 @@ void gemm_typed(const Element* x, const uint8_t* qweight, const float* scales, c
   } else {
 #if defined(DYQ_AVX512_HAS_AMX)
     if (m >= kAmxMinRows) {
-      amx_gemm<NativeTiles, AmxBf16, WeightPanel<DequantizedBf16Panel>>(x, qweight, scales, bias, m, n, k, group_size, kBits, out);
-      return;
+      return amx_gemm<NativeTiles, AmxBf16, WeightPanel<DequantizedBf16Panel>>(x, qweight, scales, bias, m, n, k,
+                                                                                 group_size, kBits, out);
     }
 #endif
 #if defined(DYQ_AVX512_HAS_BF16)
     if (use_panels(m, k, kBits)) {
-      panel_gemm<Bf16Panel>(x, qweight, scales, bias, m, n, k, group_size, kBits, out);
-      return;
+      return panel_gemm<Bf16Panel>(x, qweight, scales, bias, m, n, k, group_size, kBits, out);
     }
     const Bf16DecodeActivations activations = bf16_decode_activations(x, m, k, group_size);
     // One weight row per call: four at once, the bf16 kernel was no faster (its blocks cost the most).
-    run_tiles<kMaxTileRows>(
+    return run_tiles<kMaxTileRows>(
         qweight, scales, bias, m, n, k, group_size, out, [&](int64_t r) { return activations.row(r); },
         [&](auto tile_rows, auto, const uint8_t* weight_row, const float* scales_row, const Bf16DecodeRow* rows,
             float* sums) {
@@ -1055,12 +1055,11 @@ void gemm_typed(const Element* x, const uint8_t* qweight, const float* scales, c
         });
 #else
     if (use_panels(m, k, kBits)) {
-      panel_gemm<Fp32Panel>(x, qweight, scales, bias, m, n, k, group_size, kBits, out);
-      return;
+      return panel_gemm<Fp32Panel>(x, qweight, scales, bias, m, n, k, group_size, kBits, out);
     }
     const std::vector<float> activations = deinterleave_activations(x, m, k);
     const int64_t pitch = chunk_padded(k);
-    run_tiles<kMaxTileRows>(
+    return run_tiles<kMaxTileRows>(
         qweight, scales, bias, m, n, k, group_size, out, [&](int64_t r) { return activations.data() + r * pitch; },
         [&](auto tile_rows, auto, const uint8_t* weight_row, const float* scales_row, const float* const* rows,
             float* sums) {

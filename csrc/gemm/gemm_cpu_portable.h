@@ -54,12 +54,14 @@ PortableActivations prepare_portable_activations(const Element* x, int64_t m, in
   return prepared;
 }
 
+// out = x W^T (+ bias) at kBits; returns whether every output is finite.
 template <int kBits, typename Element>
-void gemm_typed(const Element* x, const uint8_t* qweight, const float* scales, const Element* bias,
-                         int64_t m, int64_t n, int64_t k, int group_size, Element* out) {
+bool gemm_typed(const Element* x, const uint8_t* qweight, const float* scales, const Element* bias,
+                int64_t m, int64_t n, int64_t k, int group_size, Element* out) {
   const PortableActivations activations = prepare_portable_activations<kBits>(x, m, k, group_size);
   const int64_t groups = group_count(k, group_size);
   const int64_t tasks = (n + kPortableRowsPerTask - 1) / kPortableRowsPerTask;
+  FiniteOutputs finite;
   parallel_for(0, tasks, 1, [&](int64_t task_begin, int64_t task_end) {
     RowMajorMatrix weight_codes;  // [rows, group_size], integer-valued
     ColMajorMatrix partial;       // [m, rows]: the group's partial sums
@@ -95,9 +97,11 @@ void gemm_typed(const Element* x, const uint8_t* qweight, const float* scales, c
           const float bias_value = bias != nullptr ? to_float(bias[col]) : 0.0f;
           out[row * n + col] = from_float<Element>(accumulator(row, r) + bias_value);
         }
+        finite.check(out + row * n + row_begin, rows);
       }
     }
   });
+  return finite.all();
 }
 
 inline const char* gemm_kernel(int64_t, int64_t, int, int act_bits) {
