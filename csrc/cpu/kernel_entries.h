@@ -141,9 +141,12 @@ bool recompute_overflowed_rows(const Element* x, const float* scales, const Elem
 bool gemm(const void* x, ScalarType dtype, const uint8_t* qweight, const float* scales, const void* bias, int64_t m,
           int64_t n, int64_t k, int group_size, int act_bits, void* out) {
   if (m == 0 || n == 0) return true;
-  // Below about a million multiply-adds (a 256 x 256 layer at 16 rows) one thread finishes sooner than two:
-  // the second thread's share is smaller than the cost of handing it over.
-  constexpr int64_t kMinParallelWork = int64_t{1} << 20;
+  // Below about 128 thousand multiply-adds one thread finishes sooner than two: the second thread's share is
+  // smaller than the cost of handing it over. On the AMD EPYC in torch (its OpenMP threads, alternating
+  // builds), two threads took 768 x 256 at M = 1 in 11 to 13 us against 14 on one, at M = 4 in 14 against
+  // 17, and 256 x 256 at M = 8 in 11 against 11.6; 256 x 256 at M = 1 (65536) was no faster on two. The
+  // threshold had been a million (a 256 x 256 layer at 16 rows). No other CPU was measured.
+  constexpr int64_t kMinParallelWork = int64_t{1} << 17;
   const SerialScope serial(m * n * k < kMinParallelWork);
   bool in_range = true;
   dispatch_element_type(dtype, [&](auto element) {
