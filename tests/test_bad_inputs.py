@@ -174,12 +174,13 @@ def test_product_out_of_the_output_range_is_an_error(rng):
         dyq.ops.gemm(x, qweight, scales, 64, 8)
 
 
-@pytest.mark.parametrize("dtype", (torch.float16, torch.bfloat16))
+@pytest.mark.parametrize("dtype", (torch.float16, torch.bfloat16, torch.float32))
 @pytest.mark.parametrize("threads", (1, 2))
 def test_one_overflowing_output_is_an_error_on_every_kernel(dtype, threads, rng):
     """A single output beyond the dtype's range, wherever it lies, fails the call: the CPU kernels check the
     outputs as each thread writes them (the decode rows, the panels, the threads' shares of rows)."""
     big = 60000.0 if dtype == torch.float16 else 3e38
+    name = {torch.float16: "Half", torch.bfloat16: "BFloat16", torch.float32: "Float"}[dtype]
     n, k = 96, 256
     w = random_weight(n, k, rng) * 1e-3
     previous = torch.get_num_threads()
@@ -194,7 +195,7 @@ def test_one_overflowing_output_is_an_error_on_every_kernel(dtype, threads, rng)
                 x = (torch.rand(m, k, generator=rng) - 0.5).to(dtype)
                 assert torch.isfinite(dyq.ops.gemm(x, qweight, scales, 128, act_bits)).all()
                 x[row] = big  # the true product of that row and weight row is k times beyond the range
-                with raises(f"out of the range of {'Half' if dtype == torch.float16 else 'BFloat16'}"):
+                with raises(f"out of the range of {name}"):
                     dyq.ops.gemm(x, qweight, scales, 128, act_bits)
     finally:
         torch.set_num_threads(previous)
