@@ -123,9 +123,10 @@ int store_lanes(__m256 v, Element* out) {
 #endif
 
 // Whether no value is inf or NaN (no exponent all ones), in chunks without an early exit inside, which the
-// compiler vectorizes at the path's width: at the baseline's 4 lanes this scan of a GEMM's outputs cost a
-// tenth of an AMX GEMM of 256 rows of a 256 x 256 layer. The 16-bit types are tested on their own bits:
-// widened to fp32 one by one, the scan of 65536 bf16 outputs took 67 us, half of the GEMM that wrote them.
+// compiler vectorizes at the path's width (at the baseline's 4 lanes a scan of a GEMM's whole output had cost
+// a tenth of an AMX GEMM of 256 rows of a 256 x 256 layer). The 16-bit types are tested on their own bits:
+// widened to fp32 one by one, a scan of 65536 bf16 outputs took 67 us, half of the GEMM that wrote them.
+// For the writers' shares that store_row_from_fp32 does not cover, and the overflow rescue's inputs.
 template <typename Value>
 bool all_finite(const Value* values, int64_t count) {
   using Bits = std::conditional_t<sizeof(Value) == 2, uint16_t, uint32_t>;
