@@ -12,9 +12,12 @@ is bf16 where the CPU computes in bf16 (dyq's ``avx512_bf16`` and ``amx`` paths)
 baseline, and fp32 elsewhere: on a CPU without bf16 dot products oneDNN emulates bf16, and a user would
 not run the rest of the model in it (``--dyq-base`` overrides). The models are timed in turns (each repeat
 runs every one once), so that a drift of a shared machine reaches all of them alike, first the whole steps
-and then the prefills alone. Beside the median step time, a second,
-instrumented pass records the share of the step spent inside dyq's GEMMs (forward hooks on every
-DyQLinear); the rest is attention, norms, the LM head and framework overhead. Each model's memory is the
+and then the prefills alone. Beside the median step times, instrumented steps (forward hooks around
+every module, up to 5 per model, in turns) split each model's step into its parts (``step_breakdown_ms``,
+``step_breakdown``): the linear layers (dyq's GEMMs, or torch's), the LM head, attention (its own code:
+rotary position, the KV cache, scaled dot-product attention), the MLP's activation, the norms, the
+embeddings, the layers' and the model's own code, and the time outside every module; ``dyq_gemm_share``
+is the linear layers' share of dyq's instrumented step. Each model's memory is the
 bytes of its parameters and buffers (``model_bytes``): dyq's holds the INT4 codes, their fp32 scales and
 the parts it does not convert (embeddings, norms, the LM head) in its base dtype.
 
@@ -28,6 +31,7 @@ import argparse
 import copy
 import json
 import os
+import statistics
 import time
 from pathlib import Path
 
@@ -88,20 +92,58 @@ def control_step(model, prompt_ids: torch.Tensor) -> torch.Tensor:
     return torch.cat(tokens, dim=1)
 
 
-def gemm_share(model, step) -> float:
-    """Share of one step's wall time spent inside DyQLinear forwards (hooks around each)."""
-    spent, starts = [0.0], {}
+PARTS = ("linear layers", "LM head", "attention", "MLP activation", "norms", "embeddings", "layers' own code",
+         "outside the modules")
 
-    def before(module, _):
-        starts[id(module)] = time.perf_counter()
+
+def part_of(name: str, module) -> str | None:
+    """The part of the step a module's own time counts towards (None: its parent's)."""
+    kind = type(module).__name__
+    if name.endswith("lm_head"):
+        return "LM head"
+    if isinstance(module, (dyq.DyQLinear, torch.nn.Linear)):
+        return "linear layers"
+    if kind.endswith("Attention"):
+        return "attention"
+    if kind.endswith("MLP"):
+        return "MLP activation"
+    if kind.endswith("RMSNorm"):
+        return "norms"
+    if isinstance(module, torch.nn.Embedding) or kind.endswith("RotaryEmbedding"):
+        return "embeddings"
+    if kind.endswith(("DecoderLayer", "Model", "ForCausalLM")):
+        return "layers' own code"
+    return None
+
+
+def step_breakdown(model, step) -> dict[str, float]:
+    """Milliseconds of one step by part, from forward hooks around every module: each module's own time
+    (its wall time less its children's) counts towards its part, a module of no part's towards its
+    parent's, and the step's time outside every module (sampling the token, the cache's bookkeeping between
+    calls) is "outside the modules". The hooks' own cost falls mostly on the parents ("layers' own code"),
+    so the parts add up to the instrumented step, a little longer than an uninstrumented one; "linear
+    layers" are dyq's GEMMs (DyQLinear) or torch's nn.Linear, the LM head apart."""
+    own = dict.fromkeys(PARTS, 0.0)
+    stack = []  # [part, start, children's time]
+
+    def before(part):
+        def hook(module, _):
+            stack.append([part, time.perf_counter(), 0.0])
+        return hook
 
     def after(module, _, __):
-        spent[0] += time.perf_counter() - starts.pop(id(module))
+        part, start, children = stack.pop()
+        spent = time.perf_counter() - start
+        if stack:
+            stack[-1][2] += spent
+        own[part] += spent - children
 
-    handles = []
-    for module in model.modules():
-        if isinstance(module, dyq.DyQLinear):
-            handles += [module.register_forward_pre_hook(before), module.register_forward_hook(after)]
+    handles, parts = [], {}
+    for name, module in model.named_modules():
+        part = part_of(name, module)
+        if part is None:  # its time stays with the parent
+            continue
+        handles += [module.register_forward_pre_hook(before(part)), module.register_forward_hook(after)]
     try:
         start = time.perf_counter()
         step()
@@ -109,7 +151,8 @@ def gemm_share(model, step) -> float:
     finally:
         for handle in handles:
             handle.remove()
-    return spent[0] / total
+    own["outside the modules"] = total - sum(own.values())
+    return {part: 1e3 * seconds for part, seconds in own.items()}
 
 
 def model_bytes(model) -> int:
@@ -140,20 +183,28 @@ def time_config(name: str, prompt: int, repeats: int, dyq_base: str) -> dict:
         return {label: (prepare, lambda model=model: run(model, prompt_ids))
                 for label, (prepare, model) in models.items()}
 
-    shares, kernels = {}, {}
+    shares, kernels, breakdowns = {}, {}, {}
     with torch.inference_mode():
         timings = interleaved_median_ms(candidates(control_step), warmup=1, repeats=repeats)
         prefill_ms = interleaved_median_ms(candidates(prefill), warmup=1, repeats=repeats)
+        # The instrumented passes: each model's median part by part over a few steps, in turns.
+        passes = {label: [] for label in models}
+        for _ in range(max(1, min(repeats, 5))):
+            for label, (prepare, model) in models.items():
+                if prepare is not None:
+                    prepare()
+                passes[label].append(step_breakdown(model, lambda model=model: control_step(model, prompt_ids)))
+        for label, runs in passes.items():
+            breakdowns[label] = {part: statistics.median(run[part] for run in runs) for part in PARTS}
         for bits in BITS:
             label = f"w4a{bits}"
-            dyq.set_precision(quantized, bits)
-            shares[label] = gemm_share(quantized, lambda: control_step(quantized, prompt_ids))
+            shares[label] = breakdowns[label]["linear layers"] / sum(breakdowns[label].values())
             kernels[label] = {"prefill": dyq.cpu_gemm_kernel(prompt, settings["hidden_size"], 128, bits),
                               "decode": dyq.cpu_gemm_kernel(1, settings["hidden_size"], 128, bits)}
     return {"config": name, "settings": settings, "parameters": parameters, "prompt_tokens": prompt,
             "decoded_tokens": ACTION_TOKENS, "prefill_logits": "last position", "dyq_base_dtype": dyq_base,
             "timing": "interleaved: each repeat runs every model once, in turns",
-            "step_ms": timings, "prefill_ms": prefill_ms, "dyq_gemm_share": shares,
+            "step_ms": timings, "prefill_ms": prefill_ms, "dyq_gemm_share": shares, "step_breakdown_ms": breakdowns,
             "dyq_kernel": kernels, "model_bytes": memory}
 
 
@@ -187,6 +238,12 @@ def main() -> None:
                  "in dyq GEMMs", "model MiB"],
                 rows, title=f"One control step (prefill + {ACTION_TOKENS} decoded tokens), {args.threads} thread(s), "
                             f"dyq on the {dyq_base} model, CPU path {dyq.cpu_info()['isa']}")
+    rows = [[r["config"], label, *(f"{r['step_breakdown_ms'][label][part]:.1f}" for part in PARTS),
+             f"{sum(r['step_breakdown_ms'][label].values()):.1f}"]
+            for r in results for label in labels]
+    print()
+    print_table(["config", "model", *PARTS, "instrumented step"], rows,
+                title="Where one step's time goes (ms, median of instrumented steps; each module's own time)")
     load_after = os.getloadavg()
     print(f"load average (1, 5, 15 min): {load_before} before, {load_after} after")
     path = write_json(args.out, {"benchmark": "policy_step_cpu", "environment": environment(),

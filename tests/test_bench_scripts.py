@@ -51,6 +51,16 @@ def test_bench_policy_step_times_a_control_step_at_every_width(tmp_path):
     assert step["dyq_base_dtype"] == expected_base
     assert set(step["dyq_gemm_share"]) == {"w4a16", "w4a8", "w4a4", "w4a2"}
     assert all(0 < share < 1 for share in step["dyq_gemm_share"].values())
+    # Every model's step split into the same parts, each a time, the linear layers and attention never empty.
+    breakdown = step["step_breakdown_ms"]
+    assert set(breakdown) == labels
+    for label, parts in breakdown.items():
+        assert set(parts) == {"linear layers", "LM head", "attention", "MLP activation", "norms", "embeddings",
+                              "layers' own code", "outside the modules"}
+        assert all(ms >= 0 for ms in parts.values())
+        assert parts["linear layers"] > 0 and parts["attention"] > 0 and parts["LM head"] > 0
+    for label, share in step["dyq_gemm_share"].items():
+        assert share == pytest.approx(breakdown[label]["linear layers"] / sum(breakdown[label].values()))
     assert step["dyq_kernel"]["w4a2"]["decode"] == dyq.cpu_gemm_kernel(1, step["settings"]["hidden_size"], 128, 2)
     # Memory from the config alone: every linear but the LM head becomes INT4 codes (half a byte a weight)
     # and one fp32 scale per 128 inputs; the rest stays in the base dtype.
