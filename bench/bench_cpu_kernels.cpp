@@ -10,6 +10,8 @@
 
 #include <algorithm>
 #include <chrono>
+#include <cstdlib>
+#include <memory>
 #include <cstdio>
 #include <random>
 #include <thread>
@@ -45,15 +47,19 @@ int main(int argc, char** argv) {
   for (auto [n, k] : {std::pair<int64_t, int64_t>{4096, 4096}, {11008, 4096}, {4096, 11008}}) {
     std::vector<float> weight(n * k);
     for (auto& w : weight) w = 0.02f * normal(rng);
-    std::vector<uint8_t> qweight(n * k / 2);
+    // 64-byte aligned, as torch allocates tensors: a std::vector's 16-byte alignment splits the kernels' 64-byte
+    // loads across cache lines (4 % to 6 % slower decode on the AMD EPYC).
+    std::unique_ptr<uint8_t, decltype(&std::free)> qweight_storage(
+        static_cast<uint8_t*>(std::aligned_alloc(64, (n * k / 2 + 63) / 64 * 64)), &std::free);
+    uint8_t* const qweight = qweight_storage.get();
     std::vector<float> scales(n * k / kGroupSize);
-    dyq::cpu::quantize_weight(weight.data(), n, k, kGroupSize, qweight.data(), scales.data());
+    dyq::cpu::quantize_weight(weight.data(), n, k, kGroupSize, qweight, scales.data());
     for (int64_t m : {1, 16, 256}) {
       std::vector<float> x(m * k), out(m * n);
       for (auto& v : x) v = normal(rng);
       for (int act_bits : {2, 4, 8, 16}) {
         auto run = [&] {
-          dyq::cpu::gemm(x.data(), dyq::ScalarType::kFloat32, qweight.data(), scales.data(), nullptr, m, n, k,
+          dyq::cpu::gemm(x.data(), dyq::ScalarType::kFloat32, qweight, scales.data(), nullptr, m, n, k,
                          kGroupSize, act_bits, out.data());
         };
         run();  // warm-up
