@@ -99,9 +99,9 @@ void hadamard_transform(const void* x, ScalarType dtype, const float* signs, con
 
 // After a GEMM whose outputs were not all finite (gemm_typed said so), the rows whose output is not finite
 // although their x, the bias and the weight scales are: an fp32 intermediate overflowed (x near FLT_MAX
-// makes sum x q_w overflow at 16 bits, or groups of opposite sign meet as inf - inf). Such a row is computed again from x scaled by 2^-shift, which is exact: every
-// quantity of the format scales with x (s_x does, the codes and P do not), so the sums are the same
-// numbers times 2^-shift, then scaled back. Returns false if a value is still out of range of the dtype.
+// makes sum x q_w overflow at 16 bits, or groups of opposite sign meet as inf - inf). Such a row is
+// computed again from x scaled by 2^-shift, which is exact: every quantity of the format scales with x (s_x
+// does, the codes and P do not), so the sums are the same numbers times 2^-shift, then scaled back. Returns false if a value is still out of range of the dtype.
 // Baseline code, as every entry point, so the rescue is the same on every path.
 template <typename Element, typename Compute>
 bool recompute_overflowed_rows(const Element* x, const float* scales, const Element* bias, int64_t m, int64_t n,

@@ -555,8 +555,8 @@ void bf16_decode_kernel(const uint8_t* weight_row, const float* scales_row, int6
   const int64_t full_blocks = k / kBlockColumns;
   const int64_t blocks = (k + kBlockColumns - 1) / kBlockColumns;
   const __mmask64 tail_bytes = (__mmask64{1} << ((k % kBlockColumns) / 2)) - 1;
-  __m512 acc[kRows], acc2[kRows];
-  for (int r = 0; r < kRows; ++r) acc[r] = acc2[r] = _mm512_setzero_ps();
+  __m512 acc[kRows];
+  for (int r = 0; r < kRows; ++r) acc[r] = _mm512_setzero_ps();
   for (int64_t t = 0; t < blocks; ++t) {
     const uint8_t* packed = weight_row + t * (kBlockColumns / 2);
     prefetch_weights(packed);
@@ -580,7 +580,7 @@ void bf16_decode_kernel(const uint8_t* weight_row, const float* scales_row, int6
       acc[r] = _mm512_fmadd_ps(_mm512_add_ps(dot[0], dot[1]), scale, acc[r]);
     }
   }
-  for (int r = 0; r < kRows; ++r) sums[r] = reduce_lanes<AddLanes>(_mm512_add_ps(acc[r], acc2[r])) + corrections[r];
+  for (int r = 0; r < kRows; ++r) sums[r] = reduce_lanes<AddLanes>(acc[r]) + corrections[r];
 }
 #endif
 
