@@ -13,12 +13,12 @@ baseline, and fp32 elsewhere: on a CPU without bf16 dot products oneDNN emulates
 not run the rest of the model in it (``--dyq-base`` overrides). The models are timed in turns (each repeat
 runs every one once), so that a drift of a shared machine reaches all of them alike, first the whole steps
 and then the prefills alone. Beside the median step times, instrumented steps (forward hooks around
-every module, up to 5 per model, in turns) split each model's step into its parts (``step_breakdown_ms``,
-``step_breakdown``): the linear layers (dyq's GEMMs, or torch's), the LM head, attention (its own code:
-rotary position, the KV cache, scaled dot-product attention), the MLP's activation, the norms, the
-embeddings, the layers' and the model's own code, and the time outside every module; ``dyq_gemm_share``
-is the linear layers' share of dyq's instrumented step. Each model's memory is the
-bytes of its parameters and buffers (``model_bytes``): dyq's holds the INT4 codes, their fp32 scales and
+every module, up to 5 per model, in turns) split each model's step into its parts (``step_breakdown_ms``):
+the linear layers (dyq's GEMMs, or torch's), the LM head, attention (its own code: rotary position, the KV
+cache, scaled dot-product attention), the MLP's activation, the norms, the embeddings, the layers' and the
+model's own code, and the time outside every module; ``dyq_gemm_share`` is the linear layers' share of
+dyq's instrumented step. Each model's memory is the bytes of its parameters and buffers (``model_bytes``):
+dyq's holds the INT4 codes, their fp32 scales and
 the parts it does not convert (embeddings, norms, the LM head) in its base dtype.
 
     python bench/bench_policy_step.py                  # both configs
@@ -138,7 +138,7 @@ def step_breakdown(model, step) -> dict[str, float]:
             stack[-1][2] += spent
         own[part] += spent - children
 
-    handles, parts = [], {}
+    handles = []
     for name, module in model.named_modules():
         part = part_of(name, module)
         if part is None:  # its time stays with the parent
