@@ -6,20 +6,22 @@ policy's (python/dyq/sim/policies/*/policy.json) and one of about 0.5 B paramete
 the logits of its last position only (``logits_to_keep=1``), as ``generate`` and dyq's own policy do: the
 first action token needs no others.
 
-dyq runs ``dyq.quantize_model`` on a copy of the model in its base dtype (its LM head and everything
-outside the linear layers stay in that dtype) and then sets the width with ``dyq.set_precision``. The base
-is bf16 where the CPU computes in bf16 (dyq's ``avx512_bf16`` and ``amx`` paths), as in the bf16
-baseline, and fp32 elsewhere: on a CPU without bf16 dot products oneDNN emulates bf16, and a user would
-not run the rest of the model in it (``--dyq-base`` overrides). The models are timed in turns (each repeat
-runs every one once), so that a drift of a shared machine reaches all of them alike, first the whole steps
-and then the prefills alone. Beside the median step times, instrumented steps (forward hooks around
-every module, up to 5 per model, in turns) split each model's step into its parts (``step_breakdown_ms``):
-the linear layers (dyq's GEMMs, or torch's), the LM head, attention (its own code: rotary position, the KV
-cache, scaled dot-product attention), the MLP's activation, the norms, the embeddings, the layers' and the
-model's own code, and the time outside every module; ``dyq_gemm_share`` is the linear layers' share of
-dyq's instrumented step. Each model's memory is the bytes of its parameters and buffers (``model_bytes``):
-dyq's holds the INT4 codes, their fp32 scales and
-the parts it does not convert (embeddings, norms, the LM head) in its base dtype.
+dyq runs ``dyq.quantize_model`` on a copy of the model in a base dtype (its LM head and everything outside
+the linear layers stay in that dtype) and then sets the width with ``dyq.set_precision``; the label
+``w4a8/bf16`` is W4A8 on the bf16 model. Where the CPU computes in bf16 (dyq's ``avx512_bf16`` and ``amx``
+paths) dyq is timed on both bases: on the bf16 one, as in the bf16 baseline, and on the fp32 one, as dyq's
+own policy runs (what dyq leaves alone is then computed in fp32: torch's bf16 attention over one query is
+slower than its fp32 one, but the fp32 embeddings and LM head read twice the bytes). Elsewhere only on fp32:
+on a CPU without bf16 dot products oneDNN emulates bf16, and a user would not run the rest of the model in
+it (``--dyq-base`` chooses). The models are timed in turns (each repeat runs every one once), so that a
+drift of a shared machine reaches all of them alike, first the whole steps and then the prefills alone.
+Beside the median step times, instrumented steps (forward hooks around every module, up to 5 per model, in
+turns) split each model's step into its parts (``step_breakdown_ms``): the linear layers (dyq's GEMMs, or
+torch's), the LM head, attention (its own code: rotary position, the KV cache, scaled dot-product
+attention), the MLP's activation, the norms, the embeddings, the layers' and the model's own code, and the
+time outside every module; ``dyq_gemm_share`` is the linear layers' share of dyq's instrumented step. Each
+model's memory is the bytes of its parameters and buffers (``model_bytes``): dyq's holds the INT4 codes,
+their fp32 scales and the parts it does not convert (embeddings, norms, the LM head) in its base dtype.
 
     python bench/bench_policy_step.py                  # both configs
     python bench/bench_policy_step.py --config policy --prompt 256
@@ -161,23 +163,31 @@ def model_bytes(model) -> int:
     return sum(t.numel() * t.element_size() for t in tensors.values())
 
 
-def default_dyq_base() -> str:
-    return "bf16" if dyq.cpu_info()["isa"] in BF16_PATHS else "fp32"
+def default_dyq_bases() -> list[str]:
+    return ["bf16", "fp32"] if dyq.cpu_info()["isa"] in BF16_PATHS else ["fp32"]
 
 
-def time_config(name: str, prompt: int, repeats: int, dyq_base: str) -> dict:
+def dyq_label(bits: int, base: str) -> str:
+    """dyq at ``bits`` on the model in ``base``, e.g. ``w4a8/bf16``."""
+    return f"w4a{bits}/{base}"
+
+
+def time_config(name: str, prompt: int, repeats: int, dyq_bases: list[str]) -> dict:
     settings = CONFIGS[name]()
     fp32 = build_model(settings, prompt)
     parameters = sum(p.numel() for p in fp32.parameters())
     bf16 = copy.deepcopy(fp32).to(torch.bfloat16)
-    quantized = copy.deepcopy(bf16 if dyq_base == "bf16" else fp32)
-    dyq.quantize_model(quantized)
-    memory = {"fp32": model_bytes(fp32), "bf16": model_bytes(bf16), "dyq": model_bytes(quantized)}
+    quantized = {base: copy.deepcopy(bf16 if base == "bf16" else fp32) for base in dyq_bases}
+    for model in quantized.values():
+        dyq.quantize_model(model)
+    memory = {"fp32": model_bytes(fp32), "bf16": model_bytes(bf16),
+              **{f"dyq/{base}": model_bytes(model) for base, model in quantized.items()}}
     prompt_ids = torch.randint(3, settings["vocab_size"], (1, prompt))
     # Every model in turns (interleaved_median_ms), dyq's widths each set right before its call.
     models = {"fp32": (None, fp32), "bf16": (None, bf16)}
-    for bits in BITS:
-        models[f"w4a{bits}"] = ((lambda bits=bits: dyq.set_precision(quantized, bits)), quantized)
+    for base, model in quantized.items():
+        for bits in BITS:
+            models[dyq_label(bits, base)] = ((lambda bits=bits, model=model: dyq.set_precision(model, bits)), model)
 
     def candidates(run):
         return {label: (prepare, lambda model=model: run(model, prompt_ids))
@@ -196,13 +206,14 @@ def time_config(name: str, prompt: int, repeats: int, dyq_base: str) -> dict:
                 passes[label].append(step_breakdown(model, lambda model=model: control_step(model, prompt_ids)))
         for label, runs in passes.items():
             breakdowns[label] = {part: statistics.median(run[part] for run in runs) for part in PARTS}
-        for bits in BITS:
-            label = f"w4a{bits}"
-            shares[label] = breakdowns[label]["linear layers"] / sum(breakdowns[label].values())
-            kernels[label] = {"prefill": dyq.cpu_gemm_kernel(prompt, settings["hidden_size"], 128, bits),
-                              "decode": dyq.cpu_gemm_kernel(1, settings["hidden_size"], 128, bits)}
+        for base in dyq_bases:
+            for bits in BITS:
+                label = dyq_label(bits, base)
+                shares[label] = breakdowns[label]["linear layers"] / sum(breakdowns[label].values())
+                kernels[label] = {"prefill": dyq.cpu_gemm_kernel(prompt, settings["hidden_size"], 128, bits),
+                                  "decode": dyq.cpu_gemm_kernel(1, settings["hidden_size"], 128, bits)}
     return {"config": name, "settings": settings, "parameters": parameters, "prompt_tokens": prompt,
-            "decoded_tokens": ACTION_TOKENS, "prefill_logits": "last position", "dyq_base_dtype": dyq_base,
+            "decoded_tokens": ACTION_TOKENS, "prefill_logits": "last position", "dyq_base_dtypes": dyq_bases,
             "timing": "interleaved: each repeat runs every model once, in turns",
             "step_ms": timings, "prefill_ms": prefill_ms, "dyq_gemm_share": shares, "step_breakdown_ms": breakdowns,
             "dyq_kernel": kernels, "model_bytes": memory}
@@ -214,22 +225,23 @@ def main() -> None:
     parser.add_argument("--prompt", type=int, help="prompt tokens (default: 256 for policy, 64 for 0.5b)")
     parser.add_argument("--threads", type=int, default=torch.get_num_threads())
     parser.add_argument("--repeats", type=int, default=5)
-    parser.add_argument("--dyq-base", choices=["bf16", "fp32"], default=None,
-                        help="dtype of the model dyq converts (default: bf16 on CPUs with bf16 dot products, else fp32)")
+    parser.add_argument("--dyq-base", choices=["bf16", "fp32"], action="append",
+                        help="dtype of the model dyq converts (repeatable; default: both on CPUs with bf16 dot "
+                             "products, else fp32)")
     parser.add_argument("--out", default="policy_step_cpu.json")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     load_before = os.getloadavg()
-    dyq_base = args.dyq_base or default_dyq_base()
-    results = [time_config(name, args.prompt or DEFAULT_PROMPT[name], args.repeats, dyq_base)
+    dyq_bases = list(dict.fromkeys(args.dyq_base)) if args.dyq_base else default_dyq_bases()
+    results = [time_config(name, args.prompt or DEFAULT_PROMPT[name], args.repeats, dyq_bases)
                for name in args.config or ["policy", "0.5b"]]
-    labels = ["fp32", "bf16"] + [f"w4a{b}" for b in BITS]
+    labels = ["fp32", "bf16"] + [dyq_label(b, base) for base in dyq_bases for b in BITS]
     rows = []
     for r in results:
         for label in labels:
             step, pre = r["step_ms"][label], r["prefill_ms"][label]
             share = r["dyq_gemm_share"].get(label)
-            memory = r["model_bytes"][label if label in ("fp32", "bf16") else "dyq"]
+            memory = r["model_bytes"][label if label in ("fp32", "bf16") else "dyq/" + label.split("/")[1]]
             rows.append([f"{r['config']} ({r['parameters'] / 1e6:.0f} M)", r["prompt_tokens"], label, f"{step:.1f}",
                          f"{pre:.1f}", f"{step - pre:.1f}", f"{r['step_ms']['fp32'] / step:.2f}x",
                          f"{r['step_ms']['bf16'] / step:.2f}x",
@@ -237,7 +249,7 @@ def main() -> None:
     print_table(["config", "prompt", "model", "step ms", "prefill ms", "decode ms", "fp32 / this", "bf16 / this",
                  "in dyq GEMMs", "model MiB"],
                 rows, title=f"One control step (prefill + {ACTION_TOKENS} decoded tokens), {args.threads} thread(s), "
-                            f"dyq on the {dyq_base} model, CPU path {dyq.cpu_info()['isa']}")
+                            f"w4aB/base: dyq at B bits on the model in that dtype, CPU path {dyq.cpu_info()['isa']}")
     rows = [[r["config"], label, *(f"{r['step_breakdown_ms'][label][part]:.1f}" for part in PARTS),
              f"{sum(r['step_breakdown_ms'][label].values()):.1f}"]
             for r in results for label in labels]

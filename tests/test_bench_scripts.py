@@ -42,14 +42,16 @@ def test_bench_policy_step_times_a_control_step_at_every_width(tmp_path):
               "--out", str(out))
     result = json.loads(out.read_text())
     (step,) = result["results"]
-    labels = {"fp32", "bf16", "w4a16", "w4a8", "w4a4", "w4a2"}
+    # dyq on the bf16 and the fp32 model where the CPU computes in bf16, on the fp32 one elsewhere.
+    expected_bases = ["bf16", "fp32"] if dyq.cpu_info()["isa"] in ("avx512_bf16", "amx") else ["fp32"]
+    assert step["dyq_base_dtypes"] == expected_bases
+    dyq_labels = {f"w4a{bits}/{base}" for bits in (16, 8, 4, 2) for base in expected_bases}
+    labels = {"fp32", "bf16"} | dyq_labels
     assert set(step["step_ms"]) == labels and set(step["prefill_ms"]) == labels
     assert all(t > 0 for t in [*step["step_ms"].values(), *step["prefill_ms"].values()])
     assert step["prompt_tokens"] == 8 and step["decoded_tokens"] == 7
     assert step["prefill_logits"] == "last position"
-    expected_base = "bf16" if dyq.cpu_info()["isa"] in ("avx512_bf16", "amx") else "fp32"
-    assert step["dyq_base_dtype"] == expected_base
-    assert set(step["dyq_gemm_share"]) == {"w4a16", "w4a8", "w4a4", "w4a2"}
+    assert set(step["dyq_gemm_share"]) == dyq_labels
     assert all(0 < share < 1 for share in step["dyq_gemm_share"].values())
     # Every model's step split into the same parts, each a time, the linear layers and attention never empty.
     breakdown = step["step_breakdown_ms"]
@@ -61,7 +63,7 @@ def test_bench_policy_step_times_a_control_step_at_every_width(tmp_path):
         assert parts["linear layers"] > 0 and parts["attention"] > 0 and parts["LM head"] > 0
     for label, share in step["dyq_gemm_share"].items():
         assert share == pytest.approx(breakdown[label]["linear layers"] / sum(breakdown[label].values()))
-    assert step["dyq_kernel"]["w4a2"]["decode"] == dyq.cpu_gemm_kernel(1, step["settings"]["hidden_size"], 128, 2)
+    assert step["dyq_kernel"]["w4a2/fp32"]["decode"] == dyq.cpu_gemm_kernel(1, step["settings"]["hidden_size"], 128, 2)
     # Memory from the config alone: every linear but the LM head becomes INT4 codes (half a byte a weight)
     # and one fp32 scale per 128 inputs; the rest stays in the base dtype.
     settings = step["settings"]
@@ -73,5 +75,5 @@ def test_bench_policy_step_times_a_control_step_at_every_width(tmp_path):
     other_fp32 = memory["fp32"] - 4 * linear_weights  # embeddings, norms, LM head, rotary buffers
     assert other_fp32 > 0
     assert memory["bf16"] == 2 * linear_weights + other_fp32 // 2
-    base = 2 if expected_base == "bf16" else 4
-    assert memory["dyq"] == int4_bytes + other_fp32 // 4 * base
+    for base in expected_bases:
+        assert memory[f"dyq/{base}"] == int4_bytes + other_fp32 // 4 * (2 if base == "bf16" else 4)
