@@ -4,16 +4,17 @@ Peers: torch's fp32 and bf16 ``nn.Linear`` (oneDNN), its INT4 weight-only kernel
 (``_weight_int4pack_mm_for_cpu``, bf16 input, group 128) and its dynamic INT8 linear
 (``torch.ao.quantization.quantize_dynamic``, fp32 input). dyq takes fp32 input, group 128.
 
-Each (shape, M) is timed hot (one copy of the weights, resident in the caches as far as they fit) and
-cold (as many copies as fill four times the last-level cache, called in turn, so that every call reads
-its weights from memory). The layers of one (shape, M, mode) are timed in turns, each round calling every
-one once, so that each ratio compares calls made under the same conditions of a shared machine; hot,
-each timed call follows an untimed one of the same layer, which brings back what the others evicted.
-Decode (M = 1, cold) is the exception: a bandwidth measurement, it times one layer's calls after another's,
-as a decode streams the weights of one layer after another's (in turns with the other layers' cold reads
-between its calls, W4A8 on 4096 x 4096 took 9 % longer on the AMD EPYC); only dyq's widths, which read
-the same copies, take turns there. The same run measures the machine's streaming-read bandwidth (a sum over
-1 GiB at the same thread count), once per thread count and again right before and after each shape's
+Each (shape, M) is timed hot (one copy of the weights, resident in the caches as far as they fit) and cold
+(as many copies as fill four times the last-level cache, called in turn, so that every call reads its
+weights from memory). The layers of one (shape, M, mode) are timed in turns, each round calling every one
+once, so that each ratio compares calls made under the same conditions of a shared machine; hot, each
+timed call follows an untimed one of the same layer, which brings back what the others evicted. Decode
+(M = 1, cold) is the exception: a bandwidth measurement, it times one layer's calls after another's, as a
+decode streams the weights of one layer after another's (in turns with the other layers' cold reads
+between its calls, W4A8 on 4096 x 4096 took 9 % longer on the AMD EPYC); only dyq's widths, which read the
+same copies, take turns there. M = 1 is timed over four times the repeats of the others, which the larger
+M divide by three from 64 rows on. The same run measures the machine's streaming-read bandwidth (a sum
+over 1 GiB at the same thread count), once per thread count and again right before and after each shape's
 decode timings, and the decode table states dyq's effective bandwidth at M = 1, cold (the bytes of its
 packed weights and scales over the median time) as a share of both: on a shared machine the bandwidth
 moves within a run.
@@ -49,6 +50,12 @@ BITS = [16, 8, 4, 2]
 PEERS = ["fp32", "bf16", "int8_dynamic", "int4_torch"]
 STREAM_BYTES = 1 << 30
 STREAM_REPEATS_AROUND = 5  # the streaming reads timed around each decode measurement
+
+
+# M = 1 calls take a tenth of a millisecond to a few: they get this many times the repeats. Medians of 15
+# calls moved by up to a fifth between runs on the AMD EPYC (W4A4 at 4096 x 4096, cold, one thread: 0.356
+# and 0.437 ms, the same kernel as W4A8's 0.376 and 0.378); of 61, the three integer widths agreed to 2 %.
+DECODE_REPEAT_FACTOR = 4
 
 
 def policy_shapes() -> list[tuple[int, int]]:
@@ -156,7 +163,7 @@ def time_shape(n: int, k: int, batches, modes, repeats: int, cache_bytes: int) -
         dyq_rotation = Rotation(lambda: copy.deepcopy(layer), dyq_bytes, cold, cache_bytes)
         for m in batches:
             x = torch.randn(m, k)
-            reps = max(5, repeats // 3) if m >= 64 else repeats
+            reps = repeats * DECODE_REPEAT_FACTOR if m == 1 else max(5, repeats // 3) if m >= 64 else repeats
             peer_calls = {name: (lambda rotation=rotation, inputs=x.to(dtype): rotation(inputs))
                           for name, (rotation, dtype) in rotations.items()}
             width_calls = {f"w4a{bits}": (lambda bits=bits: set_act_bits(dyq_rotation.layers, bits),
