@@ -74,6 +74,7 @@ class DyQHfQuantizer(HfQuantizer):
             for module in model.modules():
                 if isinstance(module, DyQLinear):
                     module.bind_flag(flag)
+                    module.place_packed_weights()  # the loader may have put tensors of its own in place
         else:
             method = next(m for m, saved in WEIGHT_METHOD_NAMES.items() if saved == config.weight_method)
             if method in CALIBRATED_METHODS:

@@ -6,6 +6,7 @@ from torch import nn
 
 from ..control.flag import PrecisionFlag
 from . import ops
+from .host_memory import on_huge_pages
 from .precision import check_bits, check_group_size
 
 ACTIVATION_DTYPES = (torch.float32, torch.bfloat16, torch.float16)
@@ -86,9 +87,10 @@ class DyQLinear(nn.Module):
         if flag is not None:
             self.bind_flag(flag)
         k = _packed_columns(in_features)
-        self.register_buffer("qweight", torch.zeros(out_features, k // 2, dtype=torch.uint8, device=device))
-        self.register_buffer("scales", torch.ones(out_features, -(-k // group_size), dtype=torch.float32,
-                                                  device=device))
+        self.register_buffer("qweight", on_huge_pages(torch.zeros(out_features, k // 2, dtype=torch.uint8,
+                                                                  device=device)))
+        self.register_buffer("scales", on_huge_pages(torch.ones(out_features, -(-k // group_size),
+                                                                dtype=torch.float32, device=device)))
         if bias:
             self.bias = nn.Parameter(torch.zeros(out_features, dtype=dtype, device=device), requires_grad=False)
         else:
@@ -134,8 +136,8 @@ class DyQLinear(nn.Module):
         linear.__class__ = cls
         linear.group_size, linear.act_bits, linear.flag = group_size, act_bits, None
         linear.bind_flag(flag)
-        linear.register_buffer("qweight", qweight)
-        linear.register_buffer("scales", scales)
+        linear.register_buffer("qweight", on_huge_pages(qweight))
+        linear.register_buffer("scales", on_huge_pages(scales))
         linear.register_parameter("bias", bias)
         return linear
 
@@ -186,6 +188,18 @@ class DyQLinear(nn.Module):
         return _GEMM_WITH_FLAG(x, qweight, scales, self.group_size, self.flag.tensor, bias, self.min_act_bits)
 
     # -- module plumbing ---------------------------------------------------------------------------------------
+    def place_packed_weights(self) -> None:
+        """Move ``qweight`` and ``scales`` onto huge pages where they are CPU tensors of one huge page or
+        more (:mod:`dyq.core.host_memory`: a CPU decode streams them). Conversion and loading do it; a deep
+        copy or an unpickled module does it again, since copies land in ordinary memory."""
+        for name in ("qweight", "scales"):
+            if self._buffers.get(name) is not None:
+                self._buffers[name] = on_huge_pages(self._buffers[name])
+
+    def __setstate__(self, state):
+        super().__setstate__(state)
+        self.place_packed_weights()
+
     def _apply(self, fn, recurse=True):
         # model.half() / .to(bf16) must not round the fp32 group scales; moving devices is fine.
         scales = self.scales
