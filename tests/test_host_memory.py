@@ -2,7 +2,10 @@
 starts on a 2 MiB boundary and that the kernel sees advised for huge pages, through conversion, deep copies,
 pickling and loading."""
 import copy
+import os
 import pickle
+import subprocess
+import sys
 
 import pytest
 import torch
@@ -59,6 +62,12 @@ def test_on_huge_pages_leaves_small_and_other_tensors_alone():
     assert on_huge_pages(meta) is meta
     with_grad = torch.zeros(HUGE_PAGE_BYTES, requires_grad=True)
     assert on_huge_pages(with_grad) is with_grad
+    from torch._subclasses.fake_tensor import FakeTensorMode
+
+    with FakeTensorMode():
+        fake = torch.zeros(4 * HUGE_PAGE_BYTES, dtype=torch.uint8)
+        assert on_huge_pages(fake) is fake
+        assert dyq.DyQLinear(4096, 4096).qweight.device.type == "cpu"  # built under the mode, nothing moved
 
 
 @needs_huge_pages
@@ -98,3 +107,12 @@ def test_dyqlinear_packed_weights_stay_on_huge_pages(rng):
     assert_on_huge_pages(shell.qweight)
     shell.set_precision(8)
     assert torch.equal(shell(x), expected)
+
+
+def test_dyq_huge_pages_0_turns_them_off():
+    script = ("import torch; from dyq.core.host_memory import on_huge_pages, huge_pages_available; "
+              "t = torch.ones(4 << 20, dtype=torch.uint8); "
+              "assert not huge_pages_available() and on_huge_pages(t) is t; print('off')")
+    result = subprocess.run([sys.executable, "-c", script], env={**os.environ, "DYQ_HUGE_PAGES": "0"},
+                            capture_output=True, text=True, timeout=120)
+    assert result.returncode == 0 and result.stdout.strip() == "off", result.stderr

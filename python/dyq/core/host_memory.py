@@ -14,11 +14,13 @@ huge page, in a private anonymous mapping aligned to 2 MiB and advised for huge 
 The values are the same bytes: only where they live changes. The tensor owns its mapping (it is unmapped
 with the tensor's storage), and copies of it (``copy.deepcopy``, ``.clone()``, ``.to``) are ordinary
 torch memory, which :class:`~dyq.DyQLinear` moves back after a deep copy or an unpickling.
+``DYQ_HUGE_PAGES=0`` keeps everything in torch's own memory.
 """
 from __future__ import annotations
 
 import functools
 import mmap
+import os
 
 import torch
 
@@ -28,8 +30,10 @@ _THP_SETTING = "/sys/kernel/mm/transparent_hugepage/enabled"
 
 @functools.lru_cache(maxsize=None)
 def huge_pages_available() -> bool:
-    """Whether this platform can advise memory for transparent huge pages and the kernel has not turned
-    them off (``never``)."""
+    """Whether this platform can advise memory for transparent huge pages, the kernel has not turned them
+    off (``never``) and ``DYQ_HUGE_PAGES=0`` is not set (read once, at the first conversion)."""
+    if os.environ.get("DYQ_HUGE_PAGES", "1") == "0":
+        return False
     if not hasattr(mmap, "MADV_HUGEPAGE") or not hasattr(mmap, "MAP_PRIVATE"):
         return False
     try:
@@ -60,9 +64,10 @@ def huge_page_empty(shape, dtype: torch.dtype) -> torch.Tensor:
 
 
 def on_huge_pages(tensor: torch.Tensor) -> torch.Tensor:
-    """``tensor`` copied onto huge pages (:func:`huge_page_empty`) when it is a CPU tensor of at least one
-    huge page, without gradient history; otherwise ``tensor`` itself."""
-    if (not isinstance(tensor, torch.Tensor) or tensor.device.type != "cpu" or tensor.requires_grad
+    """``tensor`` copied onto huge pages (:func:`huge_page_empty`) when it is a plain CPU tensor of at least
+    one huge page, without gradient history; otherwise ``tensor`` itself (subclasses too: a fake tensor of
+    a tracing mode has no memory to move)."""
+    if (type(tensor) is not torch.Tensor or tensor.device.type != "cpu" or tensor.requires_grad
             or tensor.numel() * tensor.element_size() < HUGE_PAGE_BYTES or not huge_pages_available()):
         return tensor
     placed = huge_page_empty(tensor.shape, tensor.dtype)
