@@ -12,12 +12,13 @@ timed call follows an untimed one of the same layer, which brings back what the 
 (M = 1, cold) is the exception: a bandwidth measurement, it times one layer's calls after another's, as a
 decode streams the weights of one layer after another's (in turns with the other layers' cold reads
 between its calls, W4A8 on 4096 x 4096 took 9 % longer on the AMD EPYC); only dyq's widths, which read the
-same copies, take turns there. M = 1 is timed over four times the repeats of the others, which the larger
-M divide by three from 64 rows on. The same run measures the machine's streaming-read bandwidth (a sum
-over 1 GiB at the same thread count, on huge pages as dyq's packed weights are), once per thread count and
-again right before and after each shape's decode timings, and the decode table states dyq's effective
-bandwidth at M = 1, cold (the bytes of its packed weights and scales over the median time) as a share of
-both: on a shared machine the bandwidth moves within a run.
+same copies, take turns there (every copy bound to one PrecisionFlag, whose one write sets the width).
+M = 1 is timed over four times the repeats of the others, which the larger M divide by three from 64 rows
+on. The same run measures the machine's streaming-read bandwidth (a sum over 1 GiB at the same thread
+count, on huge pages as dyq's packed weights are), once per thread count and again right before and after
+each shape's decode timings, and the decode table states dyq's effective bandwidth at M = 1, cold (the
+bytes of its packed weights and scales over the median time) as a share of both: on a shared machine the
+bandwidth moves within a run.
 
 Prints the tables and writes bench/results/linear_cpu.json (device, CPU flags, versions, threads, shapes,
 medians, the kernel each dyq call ran and the load average before and after each thread count's run).
@@ -131,11 +132,6 @@ def int4_torch_layer(weight: torch.Tensor):
             packed.nbytes + scale_and_zeros.nbytes)
 
 
-def set_act_bits(layers, bits: int) -> None:
-    for layer in layers:
-        layer.act_bits = bits
-
-
 def peer_layers(linear: torch.nn.Linear) -> dict:
     """name -> (factory of a fresh copy, bytes of its weights, input dtype)."""
     weight = linear.weight.detach()
@@ -164,13 +160,19 @@ def time_shape(n: int, k: int, batches, modes, repeats: int, cache_bytes: int) -
         cold = mode == "cold"
         rotations = {name: (Rotation(make, size, cold, cache_bytes), dtype) for name, (make, size, dtype) in peers.items()}
         dyq_rotation = Rotation(lambda: copy.deepcopy(layer), dyq_bytes, cold, cache_bytes)
+        # Every copy reads one flag, so that a width is set with one write, as a model switches. Set copy by
+        # copy, each timed call followed a walk over thousands of small layers' modules that had evicted
+        # everything the call touches: 256 x 256 at M = 1, cold, took 0.11 ms against 0.011 (AMD EPYC).
+        flag = dyq.PrecisionFlag(16)
+        for copied in dyq_rotation.layers:
+            copied.bind_flag(flag)
         for m in batches:
             x = torch.randn(m, k)
             reps = repeats * DECODE_REPEAT_FACTOR if m == 1 else max(5, repeats // 3) if m >= 64 else repeats
             peer_calls = {name: (lambda rotation=rotation, inputs=x.to(dtype): rotation(inputs))
                           for name, (rotation, dtype) in rotations.items()}
-            width_calls = {f"w4a{bits}": (lambda bits=bits: set_act_bits(dyq_rotation.layers, bits),
-                                          lambda: dyq_rotation(x)) for bits in BITS}
+            width_calls = {f"w4a{bits}": (lambda bits=bits: setattr(flag, "bits", bits), lambda: dyq_rotation(x))
+                           for bits in BITS}
             kernels = {f"w4a{bits}": dyq.cpu_gemm_kernel(m, k, GROUP_SIZE, bits) for bits in BITS}
             # Decode's bandwidth share is taken against a streaming read timed right before and after it: on
             # a shared machine the bandwidth moves within a run (the run-level read stays too).
