@@ -116,3 +116,21 @@ def test_dyq_huge_pages_0_turns_them_off():
     result = subprocess.run([sys.executable, "-c", script], env={**os.environ, "DYQ_HUGE_PAGES": "0"},
                             capture_output=True, text=True, timeout=120)
     assert result.returncode == 0 and result.stdout.strip() == "off", result.stderr
+
+
+@needs_huge_pages
+def test_without_a_mapping_torch_memory_serves(monkeypatch):
+    import mmap
+    import types
+
+    import dyq.core.host_memory as host_memory
+
+    def refuse(*args, **kwargs):
+        raise OSError(12, "Cannot allocate memory")
+
+    fake = types.SimpleNamespace(mmap=refuse, MAP_PRIVATE=mmap.MAP_PRIVATE, PAGESIZE=mmap.PAGESIZE,
+                                 MADV_HUGEPAGE=mmap.MADV_HUGEPAGE)
+    monkeypatch.setattr(host_memory, "mmap", fake)
+    tensor = torch.arange(HUGE_PAGE_BYTES, dtype=torch.int32)
+    placed = host_memory.on_huge_pages(tensor)
+    assert placed is not tensor and torch.equal(placed, tensor)  # a copy in torch's memory, same values

@@ -55,10 +55,13 @@ def huge_page_empty(shape, dtype: torch.dtype) -> torch.Tensor:
         return torch.zeros(shape, dtype=dtype)
     # One huge page more than needed, so that a 2 MiB boundary lies within the first one; the untouched
     # rest of the mapping never gets physical memory.
-    mapping = mmap.mmap(-1, nbytes + HUGE_PAGE_BYTES, flags=mmap.MAP_PRIVATE)
-    start = (-torch.frombuffer(mapping, dtype=torch.uint8, count=1).data_ptr()) % HUGE_PAGE_BYTES
-    advised = -(-nbytes // mmap.PAGESIZE) * mmap.PAGESIZE
-    mapping.madvise(mmap.MADV_HUGEPAGE, start, advised)
+    try:
+        mapping = mmap.mmap(-1, nbytes + HUGE_PAGE_BYTES, flags=mmap.MAP_PRIVATE)
+        start = (-torch.frombuffer(mapping, dtype=torch.uint8, count=1).data_ptr()) % HUGE_PAGE_BYTES
+        advised = -(-nbytes // mmap.PAGESIZE) * mmap.PAGESIZE
+        mapping.madvise(mmap.MADV_HUGEPAGE, start, advised)
+    except OSError:  # no mapping to be had (a limit on mappings, say): torch's own memory serves as well
+        return torch.zeros(shape, dtype=dtype)
     # The tensor's storage is exactly its bytes (torch.save and copies take no more), and holds the mapping.
     return torch.frombuffer(mapping, dtype=torch.uint8, count=nbytes, offset=start).view(dtype).view(shape)
 
