@@ -6,6 +6,7 @@
 //
 // Prints a table (median wall time, and process CPU time divided by the thread count, which stays
 // meaningful on a shared machine) and writes the same rows as JSON.
+#include <sys/mman.h>
 #include <sys/resource.h>
 
 #include <algorithm>
@@ -39,6 +40,7 @@ struct Row {
 int main(int argc, char** argv) {
   const char* json_path = argc > 1 ? argv[1] : "bench_cpu_kernels.json";
   constexpr int kGroupSize = 128;
+  constexpr size_t kHugePageBytes = size_t{2} << 20;
   const unsigned threads = std::max(1u, std::thread::hardware_concurrency());
   std::mt19937 rng(0);
   std::normal_distribution<float> normal(0.0f, 1.0f);
@@ -47,10 +49,13 @@ int main(int argc, char** argv) {
   for (auto [n, k] : {std::pair<int64_t, int64_t>{4096, 4096}, {11008, 4096}, {4096, 11008}}) {
     std::vector<float> weight(n * k);
     for (auto& w : weight) w = 0.02f * normal(rng);
-    // 64-byte aligned, as torch allocates tensors: a std::vector's 16-byte alignment splits the kernels' 64-byte
-    // loads across cache lines (4 % to 6 % slower decode on the AMD EPYC).
+    // On 2 MiB pages, as a DyQLinear keeps its packed weights on Linux (python/dyq/core/host_memory.py): a
+    // std::vector's 16-byte alignment splits the kernels' 64-byte loads across cache lines (4 % to 6 % slower
+    // decode on the AMD EPYC), and 4 KiB pages cost the decode a TLB miss every 4 KiB.
+    const size_t qweight_bytes = (n * k / 2 + kHugePageBytes - 1) / kHugePageBytes * kHugePageBytes;
     std::unique_ptr<uint8_t, decltype(&std::free)> qweight_storage(
-        static_cast<uint8_t*>(std::aligned_alloc(64, (n * k / 2 + 63) / 64 * 64)), &std::free);
+        static_cast<uint8_t*>(std::aligned_alloc(kHugePageBytes, qweight_bytes)), &std::free);
+    madvise(qweight_storage.get(), qweight_bytes, MADV_HUGEPAGE);  // before the first write; advice only
     uint8_t* const qweight = qweight_storage.get();
     std::vector<float> scales(n * k / kGroupSize);
     dyq::cpu::quantize_weight(weight.data(), n, k, kGroupSize, qweight, scales.data());
