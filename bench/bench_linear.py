@@ -42,7 +42,7 @@ import torch
 import torch.nn.functional as F
 
 import dyq
-from dyq.core.host_memory import huge_page_empty, huge_pages_available
+from dyq.core.host_memory import huge_page_empty
 from dyq.results import environment, interleaved_median_ms, median_ms, print_table, write_json
 
 GROUP_SIZE = 128
@@ -280,7 +280,6 @@ def main() -> None:
                      "load_average_before": load_before, "load_average_after": load_after, "results": results})
     payload = {"benchmark": "linear_cpu", "environment": {**environment(), "cpu_flags": cpu_flags(),
                                                           "last_level_cache_bytes": cache_bytes,
-                                                          "huge_pages": huge_pages_available(),
                                                           "dyq_cpu_paths": dyq.cpu_info()["runnable"]},
                "group_size": GROUP_SIZE, "peers": PEERS,
                "timing": "interleaved: each round calls every layer once; hot calls each after an untimed one; "

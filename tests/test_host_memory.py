@@ -110,9 +110,10 @@ def test_dyqlinear_packed_weights_stay_on_huge_pages(rng):
 
 
 def test_dyq_huge_pages_0_turns_them_off():
-    script = ("import torch; from dyq.core.host_memory import on_huge_pages, huge_pages_available; "
+    script = ("import torch, dyq; from dyq.core.host_memory import on_huge_pages, huge_pages_available; "
               "t = torch.ones(4 << 20, dtype=torch.uint8); "
-              "assert not huge_pages_available() and on_huge_pages(t) is t; print('off')")
+              "assert not huge_pages_available() and on_huge_pages(t) is t; "
+              "assert dyq.cpu_info()['huge_pages'] is False; print('off')")
     result = subprocess.run([sys.executable, "-c", script], env={**os.environ, "DYQ_HUGE_PAGES": "0"},
                             capture_output=True, text=True, timeout=120)
     assert result.returncode == 0 and result.stdout.strip() == "off", result.stderr
@@ -134,3 +135,10 @@ def test_without_a_mapping_torch_memory_serves(monkeypatch):
     tensor = torch.arange(HUGE_PAGE_BYTES, dtype=torch.int32)
     placed = host_memory.on_huge_pages(tensor)
     assert placed is not tensor and torch.equal(placed, tensor)  # a copy in torch's memory, same values
+
+
+def test_cpu_info_and_benchmarks_say_whether_huge_pages_are_used():
+    from dyq.results import environment
+
+    assert dyq.cpu_info()["huge_pages"] is huge_pages_available()
+    assert environment()["cpu_huge_pages"] is huge_pages_available()

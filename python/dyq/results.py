@@ -36,6 +36,7 @@ def environment() -> dict:
         "cpu": cpu_name(),
         "cpu_isa": cpu["isa"],
         "cpu_threads": cpu["threads"],  # whose threads run dyq's CPU kernels
+        "cpu_huge_pages": cpu["huge_pages"],  # whether dyq's packed CPU weights are on huge pages
         "cores": os.cpu_count(),
         "torch_threads": torch.get_num_threads(),
         "python": platform.python_version(),

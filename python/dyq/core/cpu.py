@@ -14,12 +14,16 @@ def cpu_info() -> dict:
     """``isa``: the path in use; ``runnable``: the paths this CPU can execute, best first; ``compiled``:
     the paths in this build; ``forced``: the value of ``DYQ_CPU_ISA``, or None; ``threads``: whose threads
     run the kernels, ``"torch"`` (torch's intra-op pool, the usual case) or ``"dyq"`` (dyq's own pool, in a
-    build against a torch that ships no OpenMP runtime).
+    build against a torch that ships no OpenMP runtime); ``huge_pages``: whether CPU layers keep their packed
+    weights on transparent huge pages (:mod:`dyq.core.host_memory`).
 
     Raises ValueError when ``DYQ_CPU_ISA`` names no path or one this CPU cannot execute."""
+    from .host_memory import huge_pages_available
+
     isa, runnable, compiled = _C.cpu_isa()
     return {"isa": isa, "runnable": list(runnable), "compiled": list(compiled),
-            "forced": os.environ.get("DYQ_CPU_ISA") or None, "threads": _C.cpu_threads()}
+            "forced": os.environ.get("DYQ_CPU_ISA") or None, "threads": _C.cpu_threads(),
+            "huge_pages": huge_pages_available()}
 
 
 def cpu_gemm_kernel(m: int, k: int, group_size: int, act_bits: int) -> str:
