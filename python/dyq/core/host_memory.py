@@ -7,7 +7,7 @@ where only memory advised ``MADV_HUGEPAGE`` gets them, and torch's allocator doe
 allocations (unless ``THP_MEM_ALLOC_ENABLE=1`` is set before torch starts). On the AMD EPYC of the README,
 one thread, W4A8 on 4096 x 4096 weights rotated through four times the last-level cache took 0.33 to
 0.41 ms a call on huge pages against 0.42 to 0.56 ms on 4 KiB pages (four alternating runs), and 11008 x
-4096 0.87 to 0.96 ms against 1.06 to 1.27.
+4096 0.87 to 0.96 ms against 1.06 to 1.27 (three).
 
 So a :class:`~dyq.DyQLinear` on the CPU keeps its packed weights and scales, where they fill at least one
 huge page, in a private anonymous mapping aligned to 2 MiB and advised for huge pages (``on_huge_pages``).
@@ -50,7 +50,7 @@ def huge_page_empty(shape, dtype: torch.dtype) -> torch.Tensor:
     shape = torch.Size(shape)
     if not huge_pages_available():
         return torch.zeros(shape, dtype=dtype)
-    nbytes = shape.numel() * torch.empty((), dtype=dtype).element_size()
+    nbytes = shape.numel() * dtype.itemsize
     if nbytes == 0:
         return torch.zeros(shape, dtype=dtype)
     # One huge page more than needed, so that a 2 MiB boundary lies within the first one; the untouched

@@ -87,10 +87,10 @@ class DyQLinear(nn.Module):
         if flag is not None:
             self.bind_flag(flag)
         k = _packed_columns(in_features)
-        self.register_buffer("qweight", on_huge_pages(torch.zeros(out_features, k // 2, dtype=torch.uint8,
-                                                                  device=device)))
-        self.register_buffer("scales", on_huge_pages(torch.ones(out_features, -(-k // group_size),
-                                                                dtype=torch.float32, device=device)))
+        self.register_buffer("qweight", torch.zeros(out_features, k // 2, dtype=torch.uint8, device=device))
+        self.register_buffer("scales", torch.ones(out_features, -(-k // group_size), dtype=torch.float32,
+                                                  device=device))
+        self.place_packed_weights()
         if bias:
             self.bias = nn.Parameter(torch.zeros(out_features, dtype=dtype, device=device), requires_grad=False)
         else:
@@ -136,8 +136,9 @@ class DyQLinear(nn.Module):
         linear.__class__ = cls
         linear.group_size, linear.act_bits, linear.flag = group_size, act_bits, None
         linear.bind_flag(flag)
-        linear.register_buffer("qweight", on_huge_pages(qweight))
-        linear.register_buffer("scales", on_huge_pages(scales))
+        linear.register_buffer("qweight", qweight)
+        linear.register_buffer("scales", scales)
+        linear.place_packed_weights()
         linear.register_parameter("bias", bias)
         return linear
 
