@@ -450,15 +450,17 @@ inline __m256i broadcast_quad(const uint8_t* codes) {
   return _mm256_set1_epi32(quad);
 }
 
-// totals[r][0..16) += the slice's contribution for activation rows rows[0..kRows), each at the slice's
-// first column and group.
-template <int kRows>
-void int_panel_kernel(const IntWeightPanel& panel, const IntPanelRow* rows, int64_t depth, int group_size,
-                      float* totals) {
+// The slice's contribution for activation rows rows[0..kRows), each at the slice's first column and group
+// (PanelSums says where it goes). Returns the output lanes that came out inf or NaN.
+template <int kRows, typename Element>
+unsigned int_panel_kernel(const IntWeightPanel& panel, const IntPanelRow* rows, int64_t depth, int group_size,
+                          const PanelSums<Element, kPanelOutputs>& sums) {
   const __m256i ones = _mm256_set1_epi16(1);
   const int64_t quads_per_group = group_size / 4;
   const auto* codes = reinterpret_cast<const __m256i*>(panel.codes.data());
-  for (int64_t g = 0; g < depth / group_size; ++g) {
+  const int64_t groups = depth / group_size;
+  unsigned nonfinite = 0;
+  for (int64_t g = 0; g < groups; ++g) {
     __m256i acc[kRows][2];
     for (int r = 0; r < kRows; ++r) acc[r][0] = acc[r][1] = _mm256_setzero_si256();
     for (int64_t q = g * quads_per_group; q < (g + 1) * quads_per_group; q += 4) {
@@ -476,20 +478,25 @@ void int_panel_kernel(const IntWeightPanel& panel, const IntPanelRow* rows, int6
         }
       }
     }
-    // The totals stay in memory: registers for them would make the compiler spill the inner loop.
+    // The totals stay in memory: registers for them would make the compiler spill the inner loop. Unrolled,
+    // so that the accumulators stay registers.
+    const bool add_totals = !(sums.first_slice && g == 0), to_output = sums.out != nullptr && g + 1 == groups;
+#pragma GCC unroll 2
     for (int h = 0; h < 2; ++h) {
       const __m256 weight_scales = _mm256_loadu_ps(&panel.scales[g * kPanelOutputs + 8 * h]);
       const __m256 weight_sums = _mm256_loadu_ps(&panel.sums[g * kPanelOutputs + 8 * h]);
+#pragma GCC unroll 4
       for (int r = 0; r < kRows; ++r) {
         // P = sum q_x q_w - z_x sum q_w, exact in fp32 (integers below 2^24).
         const __m256 partial =
             _mm256_fnmadd_ps(weight_sums, _mm256_broadcast_ss(rows[r].zeros + g), _mm256_cvtepi32_ps(acc[r][h]));
-        float* total = totals + r * kPanelOutputs + 8 * h;
-        _mm256_storeu_ps(total, _mm256_fmadd_ps(partial, _mm256_mul_ps(weight_scales, _mm256_broadcast_ss(rows[r].scales + g)),
-                                                _mm256_loadu_ps(total)));
+        nonfinite |= sums.finish(
+            r, 8 * h, _mm256_mul_ps(partial, _mm256_mul_ps(weight_scales, _mm256_broadcast_ss(rows[r].scales + g))),
+            add_totals, to_output);
       }
     }
   }
+  return nonfinite;
 }
 
 struct IntPanel {
@@ -500,9 +507,10 @@ struct IntPanel {
   static Row advance(Row row, int64_t column, int64_t group) {
     return {row.codes + column, row.scales + group, row.zeros + group};
   }
-  template <int kRows>
-  static void kernel(const WeightPanel& panel, const Row* rows, int64_t depth, int group_size, float* totals) {
-    int_panel_kernel<kRows>(panel, rows, depth, group_size, totals);
+  template <int kRows, typename Element>
+  static unsigned kernel(const WeightPanel& panel, const Row* rows, int64_t depth, int group_size,
+                         const PanelSums<Element, kPanelOutputs>& sums) {
+    return int_panel_kernel<kRows>(panel, rows, depth, group_size, sums);
   }
 };
 
@@ -539,11 +547,13 @@ struct Fp32WeightPanel {
   }
 };
 
-template <int kRows>
-void fp32_panel_kernel(const Fp32WeightPanel& panel, const float* const* rows, int64_t depth, int group_size,
-                       float* totals) {
+template <int kRows, typename Element>
+unsigned fp32_panel_kernel(const Fp32WeightPanel& panel, const float* const* rows, int64_t depth, int group_size,
+                           const PanelSums<Element, kPanelOutputs>& sums) {
   const auto* codes = reinterpret_cast<const float*>(panel.codes.data());
-  for (int64_t g = 0; g < depth / group_size; ++g) {
+  const int64_t groups = depth / group_size;
+  unsigned nonfinite = 0;
+  for (int64_t g = 0; g < groups; ++g) {
     __m256 acc[kRows][2];
     for (int r = 0; r < kRows; ++r) acc[r][0] = acc[r][1] = _mm256_setzero_ps();
     for (int64_t c = g * group_size; c < (g + 1) * group_size; ++c) {
@@ -554,14 +564,17 @@ void fp32_panel_kernel(const Fp32WeightPanel& panel, const float* const* rows, i
         acc[r][1] = _mm256_fmadd_ps(x, high, acc[r][1]);
       }
     }
+    const bool add_totals = !(sums.first_slice && g == 0), to_output = sums.out != nullptr && g + 1 == groups;
+#pragma GCC unroll 2
     for (int h = 0; h < 2; ++h) {
       const __m256 weight_scales = _mm256_loadu_ps(&panel.scales[g * kPanelOutputs + 8 * h]);
+#pragma GCC unroll 6
       for (int r = 0; r < kRows; ++r) {
-        float* total = totals + r * kPanelOutputs + 8 * h;
-        _mm256_storeu_ps(total, _mm256_fmadd_ps(acc[r][h], weight_scales, _mm256_loadu_ps(total)));
+        nonfinite |= sums.finish(r, 8 * h, _mm256_mul_ps(acc[r][h], weight_scales), add_totals, to_output);
       }
     }
   }
+  return nonfinite;
 }
 
 struct Fp32Panel {
@@ -570,9 +583,10 @@ struct Fp32Panel {
   static constexpr int kTileRows = 6;
   static constexpr int64_t kDepth = 256;  // columns per decoded slice: 16 KB of codes
   static Row advance(Row row, int64_t column, int64_t) { return row + column; }
-  template <int kRows>
-  static void kernel(const WeightPanel& panel, const Row* rows, int64_t depth, int group_size, float* totals) {
-    fp32_panel_kernel<kRows>(panel, rows, depth, group_size, totals);
+  template <int kRows, typename Element>
+  static unsigned kernel(const WeightPanel& panel, const Row* rows, int64_t depth, int group_size,
+                         const PanelSums<Element, kPanelOutputs>& sums) {
+    return fp32_panel_kernel<kRows>(panel, rows, depth, group_size, sums);
   }
 };
 
@@ -591,24 +605,32 @@ bool run_panels(ActivationRow&& activation_row, const uint8_t* qweight, const fl
     std::vector<typename Kind::Row> rows(m);
     for (int64_t p = panel_begin; p < panel_end; ++p) {
       const int64_t row_begin = p * kPanelOutputs;
-      std::fill(totals.begin(), totals.end(), 0.0f);
+      const int64_t outputs = std::min(kPanelOutputs, n - row_begin);
+      unsigned nonfinite = 0;
       for (int64_t col = 0; col < padded; col += Kind::kDepth) {
         const int64_t depth = std::min(Kind::kDepth, padded - col);
+        const bool to_output = outputs == kPanelOutputs && col + depth == padded;
         panel.pack(qweight, scales, n, k, group_size, row_begin, col, depth);
         for (int64_t r = 0; r < m; ++r) rows[r] = Kind::advance(activation_row(r), col, col / group_size);
         for (int64_t r = 0; r < m; r += Kind::kTileRows) {
+          const PanelSums<Element, kPanelOutputs> sums{totals.data() + r * kPanelOutputs, col == 0,
+                                        to_output ? out + r * n + row_begin : nullptr, n,
+                                        bias != nullptr ? bias + row_begin : nullptr};
           dispatch_tile_rows<Kind::kTileRows>(static_cast<int>(std::min<int64_t>(Kind::kTileRows, m - r)),
                                               [&](auto tile_rows) {
-                                                Kind::template kernel<decltype(tile_rows)::value>(
-                                                    panel, rows.data() + r, depth, group_size,
-                                                    totals.data() + r * kPanelOutputs);
+                                                nonfinite |= Kind::template kernel<decltype(tile_rows)::value>(
+                                                    panel, rows.data() + r, depth, group_size, sums);
                                               });
         }
       }
-      const int64_t outputs = std::min(kPanelOutputs, n - row_begin);
-      for (int64_t r = 0; r < m; ++r) {
-        finite.note(store_row_from_fp32(&totals[r * kPanelOutputs], bias != nullptr ? bias + row_begin : nullptr,
-                                        outputs, out + r * n + row_begin));
+      finite.note(nonfinite == 0);
+      // The last panel of an n that 16 does not divide, and k = 0 (no slice: the outputs are the bias).
+      if (outputs < kPanelOutputs || padded == 0) {
+        if (padded == 0) std::fill(totals.begin(), totals.end(), 0.0f);
+        for (int64_t r = 0; r < m; ++r) {
+          finite.note(store_row_from_fp32(&totals[r * kPanelOutputs], bias != nullptr ? bias + row_begin : nullptr,
+                                          outputs, out + r * n + row_begin));
+        }
       }
     }
   });

@@ -874,32 +874,17 @@ struct WeightPanel {
   }
 };
 
-// Where a panel_kernel call leaves each group's sums: in the tile's running totals, [kRows][32] fp32 that
-// stay in memory between the groups and the depth slices of a panel, and, after the last group of the
-// panel's last slice, in the output rows themselves (with the bias), as store_row_from_fp32 would write
-// them: a separate pass over the totals, with the totals zeroed before the first slice, took 11 % of a
-// 256-row W4A8 GEMM of the policy's 768 x 256 layer in bf16 on the AMD EPYC.
-template <typename Element>
-struct PanelSums {
-  float* totals;
-  bool first_slice;     // the totals hold nothing yet: the first group stores instead of adding
-  Element* out;         // on the last slice of a panel of 32 whole columns, the tile's first output row at
-                        // the panel's first column; nullptr otherwise (the caller stores the totals)
-  int64_t out_stride;   // n
-  const Element* bias;  // at the panel's first column; nullable
-};
-
 // The contribution of the panel's `depth` columns for the first kRows rows of a tile (PanelSums says where
 // it goes); words and params: the tile's at the panel's first quad and first group. Returns the output
 // lanes that came out inf or NaN (none where nothing was stored in the output).
 template <typename Kind, int kRows, typename Element>
-__mmask16 panel_kernel(const WeightPanel<Kind>& panel, const int32_t* words, const float* params, int64_t depth,
-                       int group_size, const PanelSums<Element>& sums) {
+unsigned panel_kernel(const WeightPanel<Kind>& panel, const int32_t* words, const float* params, int64_t depth,
+                       int group_size, const PanelSums<Element, kPanelColumns>& sums) {
   using Accumulator = typename Kind::Accumulator;
   constexpr int kSteps = Kind::kSteps;
   const int64_t quads = quad_count(depth);
   const int64_t quads_per_group = group_size / kQuadColumns;
-  __mmask16 nonfinite = 0;
+  unsigned nonfinite = 0;
   for (int64_t first = 0, group = 0; first < quads; first += quads_per_group, ++group) {
     Accumulator acc[kRows][2];
     for (int r = 0; r < kRows; ++r) acc[r][0] = acc[r][1] = Kind::zero();
@@ -920,26 +905,18 @@ __mmask16 panel_kernel(const WeightPanel<Kind>& panel, const int32_t* words, con
       quad_words += kPanelTileRows * kSteps;
     }
     // The totals stay in memory: keeping them in registers too would make the compiler spill the inner loop.
-    const bool add_totals = !(sums.first_slice && first == 0);
-    const bool to_output = sums.out != nullptr && last == quads;
-    const float* group_params = params + group * 2 * kPanelTileRows;
     // Unrolled, so that the accumulators stay registers (rolled, the compiler kept them on the stack and
     // stored all 16 after every quad: W4A16 on 4096 x 4096 at 256 rows took 49 ms against 41).
+    const float* group_params = params + group * 2 * kPanelTileRows;
+    const bool add_totals = !(sums.first_slice && first == 0), to_output = sums.out != nullptr && last == quads;
 #pragma GCC unroll 2
     for (int h = 0; h < 2; ++h) {
       const __m512 weight_scales = _mm512_load_ps(&panel.scales[group * kPanelColumns + 16 * h]);
       const __m512 weight_sums = _mm512_load_ps(&panel.weight_sums[group * kPanelColumns + 16 * h]);
 #pragma GCC unroll 8
       for (int r = 0; r < kRows; ++r) {
-        float* total = sums.totals + r * kPanelColumns + 16 * h;
-        __m512 value = Kind::scaled(acc[r][h], group_params, r, weight_scales, weight_sums);
-        if (add_totals) value = _mm512_add_ps(_mm512_loadu_ps(total), value);
-        if (to_output) {
-          if (sums.bias != nullptr) value = _mm512_add_ps(value, load_fp32_lanes(sums.bias + 16 * h));
-          nonfinite |= store_lanes(value, sums.out + r * sums.out_stride + 16 * h);
-        } else {
-          _mm512_storeu_ps(total, value);
-        }
+        nonfinite |= sums.finish(r, 16 * h, Kind::scaled(acc[r][h], group_params, r, weight_scales, weight_sums),
+                                 add_totals, to_output);
       }
     }
   }
@@ -959,7 +936,7 @@ bool run_panels(const ActivationTiles& tiles, const uint8_t* qweight, const floa
     for (int64_t p = panel_begin; p < panel_end; ++p) {
       const int64_t weight_row = p * kPanelColumns;
       const int64_t columns = std::min(kPanelColumns, n - weight_row);
-      __mmask16 nonfinite = 0;
+      unsigned nonfinite = 0;
       for (int64_t col = 0; col < k; col += kPanelDepth) {
         const int64_t depth = std::min(kPanelDepth, k - col);
         const bool to_output = columns == kPanelColumns && col + depth == k;
@@ -967,7 +944,7 @@ bool run_panels(const ActivationTiles& tiles, const uint8_t* qweight, const floa
         for (int64_t row = 0; row < m; row += kPanelTileRows) {
           const int64_t tile = row / kPanelTileRows;
           const int rows = static_cast<int>(std::min<int64_t>(kPanelTileRows, m - row));
-          const PanelSums<Element> sums{totals.data() + row * kPanelColumns, col == 0,
+          const PanelSums<Element, kPanelColumns> sums{totals.data() + row * kPanelColumns, col == 0,
                                         to_output ? out + row * n + weight_row : nullptr, n,
                                         bias != nullptr ? bias + weight_row : nullptr};
           dispatch_tile_rows<kPanelTileRows>(rows, [&](auto tile_rows) {

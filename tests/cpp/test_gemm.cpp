@@ -10,6 +10,7 @@
 #include <string>
 #include <thread>
 #include <tuple>
+#include <random>
 #include <vector>
 
 #include "cpu/cpu_isa.h"
@@ -157,6 +158,29 @@ TEST_P(GemmEdgeTest, EmptyBatchWritesNothing) {
     impl.run(in.x.data(), ScalarType::kFloat32, in.qweight.data(), in.weight.scales.data(), nullptr, 0, 8, 64, 32,
              act_bits, out.data());
     EXPECT_EQ(out[0], 7.0f) << impl.name;
+  }
+}
+
+// K = 0: no column, no depth slice of a panel; every output is its bias (the row kernels and the panels of
+// whole and partial column blocks alike).
+TEST_P(GemmEdgeTest, EmptyRowsGiveTheBias) {
+  const int act_bits = GetParam();
+  std::mt19937 rng(31 + act_bits);
+  std::normal_distribution<float> normal(0.0f, 1.0f);
+  for (const int64_t m : {1, 3, 40}) {
+    for (const int64_t n : {37, 64}) {
+      std::vector<float> bias(n);
+      for (float& b : bias) b = normal(rng);
+      const std::vector<float> x(1, 0.0f);
+      const std::vector<uint8_t> qweight(1, 0);
+      const std::vector<float> scales(1, 0.0f);
+      for (const auto& impl : implementations()) {
+        std::vector<float> out(m * n, -12345.0f);
+        impl.run(x.data(), ScalarType::kFloat32, qweight.data(), scales.data(), bias.data(), m, n, 0, 32, act_bits,
+                 out.data());
+        for (int64_t i = 0; i < m * n; ++i) ASSERT_EQ(out[i], bias[i % n]) << impl.name << " m " << m << " n " << n;
+      }
+    }
   }
 }
 
