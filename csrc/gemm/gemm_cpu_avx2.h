@@ -624,13 +624,8 @@ bool run_panels(ActivationRow&& activation_row, const uint8_t* qweight, const fl
         }
       }
       finite.note(nonfinite == 0);
-      // The last panel of an n that 16 does not divide, and k = 0 (no slice: the outputs are the bias).
       if (outputs < kPanelOutputs || padded == 0) {
-        if (padded == 0) std::fill(totals.begin(), totals.end(), 0.0f);
-        for (int64_t r = 0; r < m; ++r) {
-          finite.note(store_row_from_fp32(&totals[r * kPanelOutputs], bias != nullptr ? bias + row_begin : nullptr,
-                                          outputs, out + r * n + row_begin));
-        }
+        finite.note(store_panel_totals<kPanelOutputs>(totals.data(), m, n, padded, row_begin, outputs, bias, out));
       }
     }
   });

@@ -955,13 +955,8 @@ bool run_panels(const ActivationTiles& tiles, const uint8_t* qweight, const floa
         }
       }
       finite.note(nonfinite == 0);
-      // The last panel of an n that 32 does not divide, and k = 0 (no slice: the outputs are the bias).
       if (columns < kPanelColumns || k == 0) {
-        if (k == 0) std::fill(totals.begin(), totals.end(), 0.0f);
-        for (int64_t row = 0; row < m; ++row) {
-          finite.note(store_row_from_fp32(&totals[row * kPanelColumns], bias != nullptr ? bias + weight_row : nullptr,
-                                          columns, out + row * n + weight_row));
-        }
+        finite.note(store_panel_totals<kPanelColumns>(totals.data(), m, n, k, weight_row, columns, bias, out));
       }
     }
   });
