@@ -142,3 +142,34 @@ def test_cpu_info_and_benchmarks_say_whether_huge_pages_are_used():
 
     assert dyq.cpu_info()["huge_pages"] is huge_pages_available()
     assert environment()["cpu_huge_pages"] is huge_pages_available()
+
+
+@needs_huge_pages
+def test_moves_onto_the_cpu_land_on_huge_pages_and_no_other_apply_copies(rng):
+    linear = torch.nn.Linear(1024, 4096)
+    with torch.no_grad():
+        linear.weight.copy_(torch.randn(4096, 1024, generator=rng) * 0.05)
+    layer = dyq.DyQLinear.from_linear(linear, act_bits=8)
+    x = torch.randn(2, 1024, generator=rng)
+    expected = layer(x)
+
+    # New CPU tensors from an _apply (as a move back from a GPU makes them) go onto huge pages.
+    moved = copy.deepcopy(layer)._apply(lambda t: t.clone())
+    assert_on_huge_pages(moved.qweight)
+    assert torch.equal(moved.qweight, layer.qweight) and torch.equal(moved(x), expected)
+    with torch.device("meta"):
+        shell = dyq.DyQLinear(1024, 4096)
+    shell.to_empty(device="cpu")
+    assert_on_huge_pages(shell.qweight)
+    shell.load_state_dict(layer.state_dict())
+    shell.set_precision(8)
+    assert_on_huge_pages(shell.qweight)
+    assert torch.equal(shell(x), expected)
+
+    # What an _apply returns unchanged stays put: no copy for .float() or .cpu(), and share_memory() keeps
+    # the shared storage it moved the codes into.
+    qweight = layer.qweight
+    assert layer.float().qweight is qweight and layer.cpu().qweight is qweight
+    assert layer.to(torch.bfloat16).qweight is qweight and layer.scales.dtype == torch.float32
+    shared = copy.deepcopy(layer).share_memory()
+    assert shared.qweight.is_shared() and torch.equal(shared.qweight, qweight)

@@ -203,10 +203,18 @@ class DyQLinear(nn.Module):
 
     def _apply(self, fn, recurse=True):
         # model.half() / .to(bf16) must not round the fp32 group scales; moving devices is fine.
-        scales = self.scales
+        before = {name: self._buffers.get(name) for name in ("qweight", "scales")}
         super()._apply(fn, recurse)
         if self.scales.dtype != torch.float32:
-            self._buffers["scales"] = scales.to(self.scales.device)
+            self._buffers["scales"] = before["scales"].to(self.scales.device)
+        # Buffers that fn replaced by new CPU tensors (a model moved back from the GPU, to_empty(device="cpu"))
+        # are copies in ordinary memory: they go onto huge pages as conversion puts them. Those fn returned
+        # as they were (.float() leaves the uint8 codes alone, .cpu() on the CPU, share_memory() moves the
+        # storage in place) stay where they are, so no _apply copies the weights again.
+        for name, old in before.items():
+            new = self._buffers.get(name)
+            if new is not None and new is not old:
+                self._buffers[name] = on_huge_pages(new)
         return self
 
     def dequantized_weight(self) -> torch.Tensor:
