@@ -316,40 +316,56 @@ inline ActivationGroupParams quantize_group(const float* v, int64_t columns, int
   return params;
 }
 
-// quantize_group over the groups of k fp32 values, a phase over up to 16 groups at a time: each group's
-// reduction and scalar parameters form a chain of dependent instructions, which chains of other groups
-// now overlap (one group after another, a row of 4096 values took 1.18 us on the AMD EPYC, 0.80 so).
-inline void quantize_values(const float* v, int64_t k, int group_size, int act_bits, uint8_t* codes,
-                            ActivationGroupParams* params) {
+// quantize_group over the groups of `rows` rows of k fp32 values (row r at v + r * k, its codes at
+// codes + r * codes_pitch, its parameters at params + r * groups), a phase over up to 16 groups at a time,
+// across the rows: each group's reduction and scalar parameters form a chain of dependent instructions,
+// which chains of other groups overlap (one group after another, a row of 4096 values took 1.18 us on the
+// AMD EPYC, 0.80 so; rows of 256, two groups each, quantized one row at a time left little to overlap).
+inline void quantize_values(const float* v, int64_t rows, int64_t k, int group_size, int act_bits, uint8_t* codes,
+                            int64_t codes_pitch, ActivationGroupParams* params) {
   constexpr int64_t kGroupsAtOnce = 16;
   const int64_t groups = group_count(k, group_size);
-  for (int64_t first = 0; first < groups; first += kGroupsAtOnce) {
-    const int64_t last = std::min(first + kGroupsAtOnce, groups);
+  const int64_t total = rows * groups;
+  for (int64_t first = 0; first < total; first += kGroupsAtOnce) {
+    const int64_t last = std::min(first + kGroupsAtOnce, total);
     GroupRange ranges[kGroupsAtOnce];
-    for (int64_t g = first; g < last; ++g) ranges[g - first] = group_range(v + g * group_size, group_columns(k, group_size, g));
-    for (int64_t g = first; g < last; ++g) {
-      const GroupRange& range = ranges[g - first];
-      params[g] = activation_group_params(range.min, range.max, act_bits, range.nonfinite);
+    for (int64_t j = first; j < last; ++j) {
+      const int64_t r = j / groups, g = j % groups;
+      ranges[j - first] = group_range(v + r * k + g * group_size, group_columns(k, group_size, g));
     }
-    for (int64_t g = first; g < last; ++g) {
-      group_codes(v + g * group_size, group_columns(k, group_size, g), params[g], act_bits, codes + g * group_size);
+    for (int64_t j = first; j < last; ++j) {
+      const GroupRange& range = ranges[j - first];
+      params[j] = activation_group_params(range.min, range.max, act_bits, range.nonfinite);
+    }
+    for (int64_t j = first; j < last; ++j) {
+      const int64_t r = j / groups, g = j % groups;
+      group_codes(v + r * k + g * group_size, group_columns(k, group_size, g), params[j], act_bits,
+                  codes + r * codes_pitch + g * group_size);
     }
   }
 }
 
-// Quantizes the k values of `x`: codes[0..k) receive the unsigned codes q_x, params[0..ceil(k/group_size))
-// each group's (s_x, z_x), the last group holding the remainder when group_size does not divide k.
-// `row_fp32` is scratch of k floats, for 16-bit inputs; an fp32 row is read where it is (copied first, it
-// took a fifth of the AVX-512 panel path's quantization of 256 rows of 4096 on the AMD EPYC).
+// Quantizes the k values of each of the `rows` rows of `x` (contiguous): codes + r * codes_pitch receives
+// row r's unsigned codes q_x, params + r * ceil(k/group_size) its groups' (s_x, z_x), the last group of a
+// row holding the remainder when group_size does not divide k. `rows_fp32` is scratch of rows * k floats,
+// for 16-bit inputs; fp32 rows are read where they are (copied first, they took a fifth of the AVX-512
+// panel path's quantization of 256 rows of 4096 on the AMD EPYC).
+template <typename Element>
+void quantize_activation_rows(const Element* x, int64_t rows, int64_t k, int group_size, int act_bits,
+                              float* rows_fp32, uint8_t* codes, int64_t codes_pitch, ActivationGroupParams* params) {
+  if constexpr (std::is_same_v<Element, float>) {
+    quantize_values(x, rows, k, group_size, act_bits, codes, codes_pitch, params);
+  } else {
+    load_row_fp32(x, rows * k, rows_fp32);
+    quantize_values(rows_fp32, rows, k, group_size, act_bits, codes, codes_pitch, params);
+  }
+}
+
+// One row: codes[0..k), params[0..ceil(k/group_size)); `row_fp32` is scratch of k floats.
 template <typename Element>
 void quantize_activation_row(const Element* x, int64_t k, int group_size, int act_bits, float* row_fp32,
                              uint8_t* codes, ActivationGroupParams* params) {
-  if constexpr (std::is_same_v<Element, float>) {
-    quantize_values(x, k, group_size, act_bits, codes, params);
-  } else {
-    load_row_fp32(x, k, row_fp32);
-    quantize_values(row_fp32, k, group_size, act_bits, codes, params);
-  }
+  quantize_activation_rows(x, 1, k, group_size, act_bits, row_fp32, codes, 0, params);
 }
 
 }  // namespace dyq::cpu::DYQ_ISA_NAMESPACE

@@ -659,14 +659,21 @@ struct ActivationTiles {
   }
 };
 
-// Kind::row_words writes a row's words, the kSteps dwords of quad q at words + q * quad_stride (zero past
-// k), and for VnniPanel its groups' z_x and s_x at zeros[g * pitch] and scales[g * pitch], with this scratch.
-struct RowWordsScratch {
-  explicit RowWordsScratch(int64_t k, int group_size)
-      : row(sixteen_padded(k) + 64, 0.0f), codes(block_padded(k), 0), params(group_count(k, group_size)) {}
-  std::vector<float> row;                    // x in fp32, zero past k
-  AlignedVector<uint8_t> codes;              // q_x, zero past k
-  std::vector<ActivationGroupParams> params;  // (s_x, z_x) per group
+// Kind::row_words writes the words of row r of a tile, the kSteps dwords of quad q at words + q * quad_stride
+// (zero past k), and for VnniPanel its groups' z_x and s_x at zeros[g * pitch] and scales[g * pitch], with
+// this scratch; kinds with kGroupParams read the codes and parameters that activation_tiles has quantized
+// into it for the whole tile (quantize_activation_rows: the groups of several rows overlap there).
+struct TileScratch {
+  explicit TileScratch(int64_t k, int group_size)
+      : codes_pitch(block_padded(k)),
+        groups(group_count(k, group_size)),
+        rows(kPanelTileRows * k + 64, 0.0f),
+        codes(kPanelTileRows * codes_pitch, 0),
+        params(kPanelTileRows * groups) {}
+  int64_t codes_pitch, groups;
+  std::vector<float> rows;                    // x in fp32, a row or the tile's rows
+  AlignedVector<uint8_t> codes;               // q_x of row r at r * codes_pitch, zero past k
+  std::vector<ActivationGroupParams> params;  // (s_x, z_x) of row r's groups at r * groups
 };
 
 struct VnniPanel {
@@ -680,20 +687,20 @@ struct VnniPanel {
   // Step 0 of a quad: the codes of its even columns, step 1 of its odd ones, in the order of the weight
   // nibbles (split_weight_nibbles).
   template <typename Element>
-  static void row_words(const Element* x, int64_t k, int group_size, int act_bits, RowWordsScratch& scratch,
-                        int32_t* words, int64_t quad_stride, float* zeros, float* scales, int64_t pitch) {
-    quantize_activation_row(x, k, group_size, act_bits, scratch.row.data(), scratch.codes.data(),
-                            scratch.params.data());
+  static void row_words(const Element*, int64_t k, int, int, TileScratch& scratch, int r, int32_t* words,
+                        int64_t quad_stride, float* zeros, float* scales, int64_t pitch) {
+    const uint8_t* codes = scratch.codes.data() + r * scratch.codes_pitch;
+    const ActivationGroupParams* params = scratch.params.data() + r * scratch.groups;
     const __m512i even_then_odd = broadcast_i32x4(_mm_setr_epi8(0, 2, 4, 6, 1, 3, 5, 7, 8, 10, 12, 14, 9, 11, 13, 15));
     const int64_t quads = quad_count(k);
     for (int64_t q = 0; q < quads; q += 8) {
       alignas(64) uint64_t quad_codes[8];
-      _mm512_store_si512(quad_codes, _mm512_shuffle_epi8(_mm512_load_si512(&scratch.codes[8 * q]), even_then_odd));
+      _mm512_store_si512(quad_codes, _mm512_shuffle_epi8(_mm512_load_si512(codes + 8 * q), even_then_odd));
       for (int64_t j = 0; j < 8 && q + j < quads; ++j) std::memcpy(words + (q + j) * quad_stride, &quad_codes[j], 8);
     }
-    for (size_t g = 0; g < scratch.params.size(); ++g) {
-      zeros[g * pitch] = static_cast<float>(scratch.params[g].zero);
-      scales[g * pitch] = scratch.params[g].scale;
+    for (int64_t g = 0; g < scratch.groups; ++g) {
+      zeros[g * pitch] = static_cast<float>(params[g].zero);
+      scales[g * pitch] = params[g].scale;
     }
   }
   static Accumulator zero() { return _mm512_setzero_si512(); }
@@ -723,13 +730,13 @@ struct Bf16Panel {
   // x rounded to bf16 (to nearest even) in column order: step b of a quad is the pair of its columns
   // 2b, 2b + 1, as in the steps of the weights.
   template <typename Element>
-  static void row_words(const Element* x, int64_t k, int, int, RowWordsScratch& scratch, int32_t* words,
+  static void row_words(const Element* x, int64_t k, int, int, TileScratch& scratch, int, int32_t* words,
                         int64_t quad_stride, float*, float*, int64_t) {
-    load_row_fp32(x, k, scratch.row.data());
+    load_row_fp32(x, k, scratch.rows.data());
     const int64_t quads = quad_count(k);
     for (int64_t q = 0; q < quads; q += 2) {
       const __m256i rounded =
-          reinterpret_cast<__m256i>(_mm512_cvtneps_pbh(_mm512_loadu_ps(scratch.row.data() + 8 * q)));
+          reinterpret_cast<__m256i>(_mm512_cvtneps_pbh(_mm512_loadu_ps(scratch.rows.data() + 8 * q)));
       _mm_storeu_si128(reinterpret_cast<__m128i*>(words + q * quad_stride), _mm256_castsi256_si128(rounded));
       if (q + 1 < quads) {
         _mm_storeu_si128(reinterpret_cast<__m128i*>(words + (q + 1) * quad_stride),
@@ -760,12 +767,12 @@ struct Fp32Panel {
   }
   // x in fp32, column order: step j of a quad is its column j.
   template <typename Element>
-  static void row_words(const Element* x, int64_t k, int, int, RowWordsScratch& scratch, int32_t* words,
+  static void row_words(const Element* x, int64_t k, int, int, TileScratch& scratch, int, int32_t* words,
                         int64_t quad_stride, float*, float*, int64_t) {
-    load_row_fp32(x, k, scratch.row.data());
+    load_row_fp32(x, k, scratch.rows.data());
     const int64_t quads = quad_count(k);
     for (int64_t q = 0; q < quads; ++q) {
-      _mm256_storeu_ps(reinterpret_cast<float*>(words + q * quad_stride), _mm256_loadu_ps(scratch.row.data() + 8 * q));
+      _mm256_storeu_ps(reinterpret_cast<float*>(words + q * quad_stride), _mm256_loadu_ps(scratch.rows.data() + 8 * q));
     }
   }
   static Accumulator zero() { return _mm512_setzero_ps(); }
@@ -788,12 +795,17 @@ ActivationTiles activation_tiles(const Element* x, int64_t m, int64_t k, int gro
   tiles.words.resize(count * tiles.quads * kPanelTileRows * Kind::kSteps);
   if constexpr (Kind::kGroupParams) tiles.params.resize(count * tiles.groups * 2 * kPanelTileRows);
   parallel_for(0, count, 1, [&](int64_t first, int64_t last) {
-    RowWordsScratch scratch(k, group_size);
+    TileScratch scratch(k, group_size);
     for (int64_t t = first; t < last; ++t) {
-      for (int64_t r = 0; r < kPanelTileRows && t * kPanelTileRows + r < m; ++r) {
+      const int rows = static_cast<int>(std::min<int64_t>(kPanelTileRows, m - t * kPanelTileRows));
+      if constexpr (Kind::kGroupParams) {
+        quantize_activation_rows(x + t * kPanelTileRows * k, rows, k, group_size, act_bits, scratch.rows.data(),
+                                 scratch.codes.data(), scratch.codes_pitch, scratch.params.data());
+      }
+      for (int r = 0; r < rows; ++r) {
         float* zeros = nullptr;
         if constexpr (Kind::kGroupParams) zeros = tiles.params.data() + t * tiles.groups * 2 * kPanelTileRows + r;
-        Kind::row_words(x + (t * kPanelTileRows + r) * k, k, group_size, act_bits, scratch,
+        Kind::row_words(x + (t * kPanelTileRows + r) * k, k, group_size, act_bits, scratch, r,
                         tiles.words.data() + (t * tiles.quads * kPanelTileRows + r) * Kind::kSteps,
                         kPanelTileRows * Kind::kSteps, zeros, zeros != nullptr ? zeros + kPanelTileRows : nullptr,
                         2 * kPanelTileRows);
