@@ -78,13 +78,18 @@ def test_huge_page_empty_is_zero_filled():
     assert_on_huge_pages(tensor)
 
 
-@needs_huge_pages
-def test_dyqlinear_packed_weights_stay_on_huge_pages(rng):
-    # 4096 x 1024: 2 MiB of codes, 128 KiB of scales (too small to move).
+def random_layer(rng) -> tuple[torch.nn.Linear, "dyq.DyQLinear"]:
+    """A random 4096 x 1024 nn.Linear and its W4A8 DyQLinear: 2 MiB of codes, 128 KiB of scales (too small
+    to move)."""
     linear = torch.nn.Linear(1024, 4096)
     with torch.no_grad():
         linear.weight.copy_(torch.randn(4096, 1024, generator=rng) * 0.05)
-    layer = dyq.DyQLinear.from_linear(linear, act_bits=8)
+    return linear, dyq.DyQLinear.from_linear(linear, act_bits=8)
+
+
+@needs_huge_pages
+def test_dyqlinear_packed_weights_stay_on_huge_pages(rng):
+    linear, layer = random_layer(rng)
     assert_on_huge_pages(layer.qweight)
     qweight, scales = ops.quantize_weight(linear.weight.detach(), 128)
     assert torch.equal(layer.qweight, qweight) and torch.equal(layer.scales, scales)
@@ -146,10 +151,7 @@ def test_cpu_info_and_benchmarks_say_whether_huge_pages_are_used():
 
 @needs_huge_pages
 def test_moves_onto_the_cpu_land_on_huge_pages_and_no_other_apply_copies(rng):
-    linear = torch.nn.Linear(1024, 4096)
-    with torch.no_grad():
-        linear.weight.copy_(torch.randn(4096, 1024, generator=rng) * 0.05)
-    layer = dyq.DyQLinear.from_linear(linear, act_bits=8)
+    _, layer = random_layer(rng)
     x = torch.randn(2, 1024, generator=rng)
     expected = layer(x)
 
