@@ -663,15 +663,16 @@ struct ActivationTiles {
 // (zero past k), and for VnniPanel its groups' z_x and s_x at zeros[g * pitch] and scales[g * pitch], with
 // this scratch; kinds with kGroupParams read the codes and parameters that activation_tiles has quantized
 // into it for the whole tile (quantize_activation_rows: the groups of several rows overlap there).
+// Kinds without quantization convert one row at a time and take no codes.
 struct TileScratch {
-  explicit TileScratch(int64_t k, int group_size)
+  TileScratch(int64_t k, int group_size, bool quantized)
       : codes_pitch(block_padded(k)),
         groups(group_count(k, group_size)),
-        rows(kPanelTileRows * k + 64, 0.0f),
-        codes(kPanelTileRows * codes_pitch, 0),
-        params(kPanelTileRows * groups) {}
+        rows(quantized ? kPanelTileRows * k + 64 : sixteen_padded(k) + 64, 0.0f),
+        codes(quantized ? kPanelTileRows * codes_pitch : 0, 0),
+        params(quantized ? kPanelTileRows * groups : 0) {}
   int64_t codes_pitch, groups;
-  std::vector<float> rows;                    // x in fp32, a row or the tile's rows
+  std::vector<float> rows;                    // x in fp32: the tile's rows, or one row zero past k
   AlignedVector<uint8_t> codes;               // q_x of row r at r * codes_pitch, zero past k
   std::vector<ActivationGroupParams> params;  // (s_x, z_x) of row r's groups at r * groups
 };
@@ -795,7 +796,7 @@ ActivationTiles activation_tiles(const Element* x, int64_t m, int64_t k, int gro
   tiles.words.resize(count * tiles.quads * kPanelTileRows * Kind::kSteps);
   if constexpr (Kind::kGroupParams) tiles.params.resize(count * tiles.groups * 2 * kPanelTileRows);
   parallel_for(0, count, 1, [&](int64_t first, int64_t last) {
-    TileScratch scratch(k, group_size);
+    TileScratch scratch(k, group_size, Kind::kGroupParams);
     for (int64_t t = first; t < last; ++t) {
       const int rows = static_cast<int>(std::min<int64_t>(kPanelTileRows, m - t * kPanelTileRows));
       if constexpr (Kind::kGroupParams) {
