@@ -14,7 +14,7 @@ decode streams the weights of one layer after another's (in turns with the other
 between its calls, W4A8 on 4096 x 4096 took 9 % longer on the AMD EPYC); only dyq's widths, which read the
 same copies, take turns there (every copy bound to one PrecisionFlag, whose one write sets the width).
 M = 1 is timed over four times the repeats of the others, which the larger M divide by three from 64 rows
-on. The same run measures the machine's streaming-read bandwidth (a sum over 1 GiB at the same thread
+on; short calls get more, until each layer's timed calls add up to 0.1 s (at most 1000 rounds). The same run measures the machine's streaming-read bandwidth (a sum over 1 GiB at the same thread
 count, on huge pages as dyq's packed weights are), once per thread count and again right before and after
 each shape's decode timings, and the decode table states dyq's effective bandwidth at M = 1, cold (the
 bytes of its packed weights and scales over the median time) as a share of both: on a shared machine the
@@ -58,6 +58,11 @@ STREAM_REPEATS_AROUND = 5  # the streaming reads timed around each decode measur
 # calls moved by up to a fifth between runs on the AMD EPYC (W4A4 at 4096 x 4096, cold, one thread: 0.356
 # and 0.437 ms, the same kernel as W4A8's 0.376 and 0.378); of 61, the three integer widths agreed to 2 %.
 DECODE_REPEAT_FACTOR = 4
+# And every candidate's timed calls add up to at least this many seconds, within MAX_ROUNDS rounds: the
+# policy's layers take 0.01 to 0.6 ms a call, where 5 rounds of the larger M left the medians of the three
+# integer widths, which run one kernel, up to a quarter apart (256 x 256, M = 16, one thread, cold).
+MIN_SECONDS_PER_CANDIDATE = 0.1
+MAX_ROUNDS = 1000
 
 
 def policy_shapes() -> list[tuple[int, int]]:
@@ -183,13 +188,18 @@ def time_shape(n: int, k: int, batches, modes, repeats: int, cache_bytes: int) -
                     # One layer after another, as a decode streams one layer's weights after another's: the
                     # bandwidth measurement, between the two streaming reads. dyq's widths share one rotation
                     # of copies, so they still take turns.
-                    timings = {name: median_ms(fn, repeats=reps) for name, fn in peer_calls.items()}
-                    timings.update(interleaved_median_ms(width_calls, warmup=3, repeats=reps))
+                    timings = {name: median_ms(fn, repeats=reps, min_seconds=MIN_SECONDS_PER_CANDIDATE)
+                               for name, fn in peer_calls.items()}
+                    timings.update(interleaved_median_ms(width_calls, warmup=3, repeats=reps,
+                                                         min_seconds=MIN_SECONDS_PER_CANDIDATE * len(width_calls),
+                                                         max_repeats=max(reps, MAX_ROUNDS)))
                 else:
                     # In turns, so that every ratio compares calls made under the same conditions; hot calls
                     # each after an untimed one of their own, as the other layers' calls evicted their weights.
-                    timings = interleaved_median_ms({**peer_calls, **width_calls}, warmup=3, repeats=reps,
-                                                    rewarm=not cold)
+                    candidates = {**peer_calls, **width_calls}
+                    timings = interleaved_median_ms(candidates, warmup=3, repeats=reps, rewarm=not cold,
+                                                    min_seconds=MIN_SECONDS_PER_CANDIDATE * len(candidates),
+                                                    max_repeats=max(reps, MAX_ROUNDS))
             if decode:
                 stream_around.append(stream_read_gbps(STREAM_REPEATS_AROUND))
             result = {"m": m, "n": n, "k": k, "mode": mode, "group_size": GROUP_SIZE, "median_ms": timings,

@@ -57,3 +57,33 @@ def test_prepare_runs_untimed_before_each_call_and_rewarm_adds_an_untimed_call(c
 def test_bad_counts_are_refused(warmup, repeats):
     with pytest.raises(ValueError, match="warmup must be >= 0 and repeats >= 1"):
         results.interleaved_median_ms({"x": lambda: None}, warmup=warmup, repeats=repeats)
+
+
+def test_rounds_go_on_until_the_timed_calls_reach_min_seconds(clock):
+    calls = []
+
+    def fn():
+        calls.append(len(calls))
+        clock.now += 0.010 if len(calls) % 2 else 0.030  # 10 ms and 30 ms in turn: median of 20 ms rounds
+
+    # 3 rounds time 50 ms; 0.1 s of timed calls takes 6 (five time 90 ms).
+    medians = results.interleaved_median_ms({"x": fn}, warmup=0, repeats=3, min_seconds=0.1)
+    assert len(calls) == 6
+    assert medians == pytest.approx({"x": 20.0})
+
+
+def test_max_repeats_caps_the_rounds_that_min_seconds_adds(clock):
+    calls = []
+
+    def fn():
+        calls.append(1)
+        clock.now += 0.001
+
+    results.interleaved_median_ms({"x": fn, "y": fn}, warmup=0, repeats=2, min_seconds=10.0, max_repeats=7)
+    assert len(calls) == 14  # 7 rounds of both candidates
+
+
+@pytest.mark.parametrize("min_seconds, max_repeats", [(-0.5, None), (0.1, 2)])
+def test_bad_time_bounds_are_refused(min_seconds, max_repeats):
+    with pytest.raises(ValueError, match="min_seconds must be >= 0 and max_repeats >= repeats"):
+        results.interleaved_median_ms({"x": lambda: None}, repeats=3, min_seconds=min_seconds, max_repeats=max_repeats)

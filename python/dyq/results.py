@@ -74,7 +74,8 @@ def median_ms(fn, *, warmup: int = 3, repeats: int = 15, min_seconds: float = 0.
     return statistics.median(times)
 
 
-def interleaved_median_ms(candidates: dict, *, warmup: int = 1, repeats: int = 15, rewarm: bool = False) -> dict:
+def interleaved_median_ms(candidates: dict, *, warmup: int = 1, repeats: int = 15, rewarm: bool = False,
+                          min_seconds: float = 0.0, max_repeats: int | None = None) -> dict:
     """Median wall milliseconds of each candidate, timed in turns: every round calls each candidate once,
     starting one further along each round, so that all of them meet the same drifts of a shared machine
     (on a 2-core VM the same bf16 control step took 32 ms in one minute and 42 in the next, which moved
@@ -82,10 +83,17 @@ def interleaved_median_ms(candidates: dict, *, warmup: int = 1, repeats: int = 1
 
     ``candidates`` maps a name to fn, or to (prepare, fn) where prepare() runs untimed before each call
     of fn (to set a precision, say). With ``rewarm`` every timed call follows an untimed one of the same
-    candidate, which brings back into the caches what the other candidates' calls evicted."""
+    candidate, which brings back into the caches what the other candidates' calls evicted.
+
+    Rounds go on past ``repeats`` until the timed calls add up to ``min_seconds``, up to ``max_repeats``
+    rounds in all: calls of a tenth of a millisecond then get hundreds of rounds where a fixed count fit
+    for a long call leaves their medians to a few rounds' drift."""
     calls = {name: entry if isinstance(entry, tuple) else (None, entry) for name, entry in candidates.items()}
     if warmup < 0 or repeats < 1:
         raise ValueError(f"warmup must be >= 0 and repeats >= 1, got {warmup} and {repeats}")
+    if min_seconds < 0 or (max_repeats is not None and max_repeats < repeats):
+        raise ValueError(f"min_seconds must be >= 0 and max_repeats >= repeats ({repeats}), "
+                         f"got {min_seconds} and {max_repeats}")
     for prepare, fn in calls.values():
         for _ in range(warmup):
             if prepare is not None:
@@ -93,7 +101,9 @@ def interleaved_median_ms(candidates: dict, *, warmup: int = 1, repeats: int = 1
             fn()
     names = list(calls)
     times = {name: [] for name in names}
-    for round_ in range(repeats):
+    timed_ms = 0.0
+    round_ = 0
+    while round_ < repeats or (timed_ms < 1e3 * min_seconds and (max_repeats is None or round_ < max_repeats)):
         for i in range(len(names)):
             name = names[(round_ + i) % len(names)]
             prepare, fn = calls[name]
@@ -103,7 +113,10 @@ def interleaved_median_ms(candidates: dict, *, warmup: int = 1, repeats: int = 1
                 fn()
             t0 = time.perf_counter()
             fn()
-            times[name].append((time.perf_counter() - t0) * 1e3)
+            elapsed = (time.perf_counter() - t0) * 1e3
+            times[name].append(elapsed)
+            timed_ms += elapsed
+        round_ += 1
     return {name: statistics.median(values) for name, values in times.items()}
 
 
