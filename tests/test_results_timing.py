@@ -19,22 +19,39 @@ def clock(monkeypatch):
     return fake
 
 
-def test_candidates_take_turns_and_each_median_is_its_own(clock):
+def test_every_round_calls_each_candidate_once_and_each_median_is_its_own(clock):
     log = []
-
-    def call(name, seconds):
-        def fn():
-            log.append(name)
-            clock.now += seconds
-        return fn
-
     durations = {"a": [0.002, 0.004, 0.003], "b": [0.010, 0.030, 0.020], "c": [0.001, 0.001, 0.005]}
     counters = {name: iter(values) for name, values in durations.items()}
-    candidates = {name: (lambda name=name: call(name, next(counters[name]))()) for name in durations}
+
+    def call(name):
+        log.append(name)
+        clock.now += next(counters[name])
+
+    candidates = {name: (lambda name=name: call(name)) for name in durations}
     medians = results.interleaved_median_ms(candidates, warmup=0, repeats=3)
-    # Round r starts r places further along.
-    assert log == ["a", "b", "c", "b", "c", "a", "c", "a", "b"]
+    assert [sorted(log[3 * r:3 * r + 3]) for r in range(3)] == [["a", "b", "c"]] * 3
     assert medians == pytest.approx({"a": 3.0, "b": 20.0, "c": 1.0})
+
+
+def test_each_candidate_follows_every_other_and_the_order_is_reproducible(clock):
+    names = [f"c{i}" for i in range(5)]
+
+    def run(seed):
+        log = []
+        candidates = {name: (lambda name=name: log.append(name)) for name in names}
+        results.interleaved_median_ms(candidates, warmup=0, repeats=200, seed=seed)
+        return log
+
+    log = run(0)
+    follows = {}
+    for before, after in zip(log, log[1:]):
+        follows[(before, after)] = follows.get((before, after), 0) + 1
+    # A fixed or rotated order would put each candidate after one other nearly every time: 20 ordered pairs
+    # share the 999 successions, each at least 20 times.
+    pairs = [(x, y) for x in names for y in names if x != y]
+    assert all(follows.get(pair, 0) >= 20 for pair in pairs), follows
+    assert run(0) == log and run(1) != log
 
 
 def test_prepare_runs_untimed_before_each_call_and_rewarm_adds_an_untimed_call(clock):

@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import os
 import platform
+import random
 import statistics
 import subprocess
 import time
@@ -75,11 +76,15 @@ def median_ms(fn, *, warmup: int = 3, repeats: int = 15, min_seconds: float = 0.
 
 
 def interleaved_median_ms(candidates: dict, *, warmup: int = 1, repeats: int = 15, rewarm: bool = False,
-                          min_seconds: float = 0.0, max_repeats: int | None = None) -> dict:
-    """Median wall milliseconds of each candidate, timed in turns: every round calls each candidate once,
-    starting one further along each round, so that all of them meet the same drifts of a shared machine
-    (on a 2-core VM the same bf16 control step took 32 ms in one minute and 42 in the next, which moved
-    ratios of candidates timed one after another by a fifth).
+                          min_seconds: float = 0.0, max_repeats: int | None = None, seed: int = 0) -> dict:
+    """Median wall milliseconds of each candidate, timed in turns: every round calls each candidate once, so
+    that all of them meet the same drifts of a shared machine (on a 2-core VM the same bf16 control step
+    took 32 ms in one minute and 42 in the next, which moved ratios of candidates timed one after another
+    by a fifth). Each round takes its own order, shuffled with ``seed``, so that every candidate follows
+    each of the others about equally often: a call pays for what the one before it left behind (with
+    two threads, the call after some of torch's kernels found the other thread asleep, which made it up to
+    30 % slower on a 0.06 ms layer of the AMD EPYC), and a fixed order, even one rotated every round,
+    charged that to the same candidate nearly every time.
 
     ``candidates`` maps a name to fn, or to (prepare, fn) where prepare() runs untimed before each call
     of fn (to set a precision, say). With ``rewarm`` every timed call follows an untimed one of the same
@@ -99,13 +104,14 @@ def interleaved_median_ms(candidates: dict, *, warmup: int = 1, repeats: int = 1
             if prepare is not None:
                 prepare()
             fn()
-    names = list(calls)
-    times = {name: [] for name in names}
+    order = list(calls)
+    shuffle = random.Random(seed).shuffle
+    times = {name: [] for name in order}
     timed_ms = 0.0
-    round_ = 0
-    while round_ < repeats or (timed_ms < 1e3 * min_seconds and (max_repeats is None or round_ < max_repeats)):
-        for i in range(len(names)):
-            name = names[(round_ + i) % len(names)]
+    rounds = 0
+    while rounds < repeats or (timed_ms < 1e3 * min_seconds and (max_repeats is None or rounds < max_repeats)):
+        shuffle(order)
+        for name in order:
             prepare, fn = calls[name]
             if prepare is not None:
                 prepare()
@@ -116,7 +122,7 @@ def interleaved_median_ms(candidates: dict, *, warmup: int = 1, repeats: int = 1
             elapsed = (time.perf_counter() - t0) * 1e3
             times[name].append(elapsed)
             timed_ms += elapsed
-        round_ += 1
+        rounds += 1
     return {name: statistics.median(values) for name, values in times.items()}
 
 
