@@ -104,3 +104,11 @@ def test_max_repeats_caps_the_rounds_that_min_seconds_adds(clock):
 def test_bad_time_bounds_are_refused(min_seconds, max_repeats):
     with pytest.raises(ValueError, match="min_seconds must be >= 0 and max_repeats >= repeats"):
         results.interleaved_median_ms({"x": lambda: None}, repeats=3, min_seconds=min_seconds, max_repeats=max_repeats)
+
+
+def test_environment_records_the_variables_that_change_cpu_timings(monkeypatch):
+    monkeypatch.setenv("OMP_WAIT_POLICY", "ACTIVE")
+    monkeypatch.delenv("GOMP_SPINCOUNT", raising=False)
+    recorded = results.environment()["timing_variables"]
+    assert recorded["OMP_WAIT_POLICY"] == "ACTIVE"
+    assert "GOMP_SPINCOUNT" not in recorded

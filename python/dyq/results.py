@@ -16,6 +16,11 @@ import torch
 # bench/results/ of a source checkout; commands take an explicit path when installed elsewhere.
 RESULTS = Path.cwd() / "bench" / "results"
 
+# Environment variables that change CPU timings, recorded where set: how the OpenMP threads wait between
+# parallel regions moved a 0.06 ms call by 30 % on a 2-core VM, and dyq's own switches pick its path.
+TIMING_VARIABLES = ("OMP_NUM_THREADS", "OMP_WAIT_POLICY", "GOMP_SPINCOUNT", "KMP_BLOCKTIME", "DYQ_CPU_ISA",
+                    "DYQ_HUGE_PAGES")
+
 
 def cpu_name() -> str:
     try:
@@ -45,6 +50,7 @@ def environment() -> dict:
         "numpy": numpy.__version__,
         "dyq": dyq.__version__,
         "time": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
+        "timing_variables": {name: os.environ[name] for name in TIMING_VARIABLES if name in os.environ},
     }
     if torch.cuda.is_available():
         props = torch.cuda.get_device_properties(0)
