@@ -7,7 +7,8 @@ Peers: torch's fp32 and bf16 ``nn.Linear`` (oneDNN), its INT4 weight-only kernel
 Each (shape, M) is timed hot (one copy of the weights, resident in the caches as far as they fit) and cold
 (as many copies as fill four times the last-level cache, called in turn, so that every call reads its
 weights from memory). The layers of one (shape, M, mode) are timed in turns, each round calling every one
-once, so that each ratio compares calls made under the same conditions of a shared machine; hot, each
+once in its own shuffled order, so that each ratio compares calls made under the same conditions of a
+shared machine and no layer always follows the same other one; hot, each
 timed call follows an untimed one of the same layer, which brings back what the others evicted. Decode
 (M = 1, cold) is the exception: a bandwidth measurement, it times one layer's calls after another's, as a
 decode streams the weights of one layer after another's (in turns with the other layers' cold reads
@@ -292,7 +293,8 @@ def main() -> None:
                                                           "last_level_cache_bytes": cache_bytes,
                                                           "dyq_cpu_paths": dyq.cpu_info()["runnable"]},
                "group_size": GROUP_SIZE, "peers": PEERS,
-               "timing": "interleaved: each round calls every layer once; hot calls each after an untimed one; "
+               "timing": "interleaved: each round calls every layer once, in a shuffled order; hot calls each after "
+                         "an untimed one; "
                          "M = 1 cold one peer after another, dyq's widths in turns",
                "runs": runs}
     path = write_json(args.out, payload)

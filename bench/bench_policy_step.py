@@ -13,7 +13,7 @@ paths) dyq is timed on both bases: on the bf16 one, as in the bf16 baseline, and
 own policy runs (what dyq leaves alone is then computed in fp32: torch's bf16 attention over one query is
 slower than its fp32 one, but the fp32 embeddings and LM head read twice the bytes). Elsewhere only on fp32:
 on a CPU without bf16 dot products oneDNN emulates bf16, and a user would not run the rest of the model in
-it (``--dyq-base`` chooses). The models are timed in turns (each repeat runs every one once), so that a
+it (``--dyq-base`` chooses). The models are timed in turns (each repeat runs every one once, in a shuffled order), so that a
 drift of a shared machine reaches all of them alike, first the whole steps and then the prefills alone.
 Beside the median step times, instrumented steps (forward hooks around every module, up to 5 per model, in
 turns) split each model's step into its parts (``step_breakdown_ms``): the linear layers (dyq's GEMMs, or
@@ -214,7 +214,7 @@ def time_config(name: str, prompt: int, repeats: int, dyq_bases: list[str]) -> d
                                   "decode": dyq.cpu_gemm_kernel(1, settings["hidden_size"], 128, bits)}
     return {"config": name, "settings": settings, "parameters": parameters, "prompt_tokens": prompt,
             "decoded_tokens": ACTION_TOKENS, "prefill_logits": "last position", "dyq_base_dtypes": dyq_bases,
-            "timing": "interleaved: each repeat runs every model once, in turns",
+            "timing": "interleaved: each repeat runs every model once, in a shuffled order",
             "step_ms": timings, "prefill_ms": prefill_ms, "dyq_gemm_share": shares, "step_breakdown_ms": breakdowns,
             "dyq_kernel": kernels, "model_bytes": memory}
 
