@@ -4,22 +4,22 @@ Peers: torch's fp32 and bf16 ``nn.Linear`` (oneDNN), its INT4 weight-only kernel
 (``_weight_int4pack_mm_for_cpu``, bf16 input, group 128) and its dynamic INT8 linear
 (``torch.ao.quantization.quantize_dynamic``, fp32 input). dyq takes fp32 input, group 128.
 
-Each (shape, M) is timed hot (one copy of the weights, resident in the caches as far as they fit) and cold
-(as many copies as fill four times the last-level cache, called in turn, so that every call reads its
-weights from memory). The layers of one (shape, M, mode) are timed in turns, each round calling every one
-once in its own shuffled order, so that each ratio compares calls made under the same conditions of a
-shared machine and no layer always follows the same other one; hot, each
-timed call follows an untimed one of the same layer, which brings back what the others evicted. Decode
-(M = 1, cold) is the exception: a bandwidth measurement, it times one layer's calls after another's, as a
-decode streams the weights of one layer after another's (in turns with the other layers' cold reads
-between its calls, W4A8 on 4096 x 4096 took 9 % longer on the AMD EPYC); only dyq's widths, which read the
-same copies, take turns there (every copy bound to one PrecisionFlag, whose one write sets the width).
-M = 1 is timed over four times the repeats of the others, which the larger M divide by three from 64 rows
-on; short calls get more, until each layer's timed calls add up to 0.1 s (at most 1000 rounds). The same run measures the machine's streaming-read bandwidth (a sum over 1 GiB at the same thread
-count, on huge pages as dyq's packed weights are), once per thread count and again right before and after
-each shape's decode timings, and the decode table states dyq's effective bandwidth at M = 1, cold (the
-bytes of its packed weights and scales over the median time) as a share of both: on a shared machine the
-bandwidth moves within a run.
+Each (shape, M) is timed hot (one copy of the weights, resident in the caches as far as they fit) and cold (as
+many copies as fill four times the last-level cache, called in turn, so that every call reads its weights from
+memory). The layers of one (shape, M, mode) are timed in turns, each round calling every one once in its own
+shuffled order, so that each ratio compares calls made under the same conditions of a shared machine and no
+layer always follows the same other one; hot, each timed call follows an untimed one of the same layer, which
+brings back what the others evicted. Decode (M = 1, cold) is the exception: a bandwidth measurement, it times
+one layer's calls after another's, as a decode streams the weights of one layer after another's (in turns with
+the other layers' cold reads between its calls, W4A8 on 4096 x 4096 took 9 % longer on the AMD EPYC); only
+dyq's widths, which read the same copies, take turns there (every copy bound to one PrecisionFlag, whose one
+write sets the width). M = 1 is timed over four times the repeats of the others, which the larger M divide by
+three from 64 rows on; short calls get more, until each layer's timed calls add up to 0.1 s (at most 1000
+rounds). The same run measures the machine's streaming-read bandwidth (a sum over 1 GiB at the same thread
+count, on huge pages as dyq's packed weights are), once per thread count and again right before and after each
+shape's decode timings, and the decode table states dyq's effective bandwidth at M = 1, cold (the bytes of its
+packed weights and scales over the median time) as a share of both: on a shared machine the bandwidth moves
+within a run.
 
 Prints the tables and writes bench/results/linear_cpu.json (device, CPU flags, versions, threads, shapes,
 medians, the kernel each dyq call ran and the load average before and after each thread count's run).
@@ -293,9 +293,8 @@ def main() -> None:
                                                           "last_level_cache_bytes": cache_bytes,
                                                           "dyq_cpu_paths": dyq.cpu_info()["runnable"]},
                "group_size": GROUP_SIZE, "peers": PEERS,
-               "timing": "interleaved: each round calls every layer once, in a shuffled order; hot calls each after "
-                         "an untimed one; "
-                         "M = 1 cold one peer after another, dyq's widths in turns",
+               "timing": "interleaved: each round calls every layer once, in a shuffled order; hot calls each "
+                         "after an untimed one; M = 1 cold one peer after another, dyq's widths in turns",
                "runs": runs}
     path = write_json(args.out, payload)
     print(f"\nwrote {path}")

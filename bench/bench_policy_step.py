@@ -12,9 +12,10 @@ the linear layers stay in that dtype) and then sets the width with ``dyq.set_pre
 paths) dyq is timed on both bases: on the bf16 one, as in the bf16 baseline, and on the fp32 one, as dyq's
 own policy runs (what dyq leaves alone is then computed in fp32: torch's bf16 attention over one query is
 slower than its fp32 one, but the fp32 embeddings and LM head read twice the bytes). Elsewhere only on fp32:
-on a CPU without bf16 dot products oneDNN emulates bf16, and a user would not run the rest of the model in
-it (``--dyq-base`` chooses). The models are timed in turns (each repeat runs every one once, in a shuffled order), so that a
-drift of a shared machine reaches all of them alike, first the whole steps and then the prefills alone.
+on a CPU without bf16 dot products oneDNN emulates bf16, and a user would not run the rest of the model in it
+(``--dyq-base`` chooses). The models are timed in turns (each repeat runs every one once, in a shuffled
+order), so that a drift of a shared machine reaches all of them alike, first the whole steps and then the
+prefills alone.
 Beside the median step times, instrumented steps (forward hooks around every module, up to 5 per model, in
 turns) split each model's step into its parts (``step_breakdown_ms``): the linear layers (dyq's GEMMs, or
 torch's), the LM head, attention (its own code: rotary position, the KV cache, scaled dot-product
