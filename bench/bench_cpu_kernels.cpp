@@ -1,27 +1,40 @@
-// Timing of dyq::cpu::gemm on the Llama layer shapes, for every act_bits. Not built by default:
+// Timing of dyq::cpu::gemm on the Llama layer shapes, for every act_bits, with nothing of torch around it.
+// Not built by default:
 //
 //   c++ -O2 -std=c++17 -I csrc -I /usr/include/eigen3 bench/bench_cpu_kernels.cpp
 //       build/ctest/libdyq_cpu_kernels.a -lpthread -o /tmp/bench_cpu_kernels
-//   [DYQ_CPU_ISA=avx512|avx2|portable] /tmp/bench_cpu_kernels [results.json]
+//   [DYQ_CPU_ISA=avx512|avx2|portable] /tmp/bench_cpu_kernels [results.json [threads]]
 //
-// Prints a table (median wall time, and process CPU time divided by the thread count, which stays
-// meaningful on a shared machine) and writes the same rows as JSON.
+// Hot: M = 1, 16 and 256 on one copy of the weights. Prints a table (median wall time, and process CPU
+// time divided by the thread count, which stays meaningful on a shared machine).
+// Cold decode: M = 1 over as many copies of the weights as fill four times the last-level cache, called in
+// turn, each width's median time as bandwidth (packed weights and scales over the time), beside a streaming
+// read of 1 GiB on as many threads, timed right before each shape: the kernels' own share of the memory's
+// speed, which bench_linear.py measures through torch (its per-call costs included). Both tables go to the
+// JSON.
 #include <sys/mman.h>
 #include <sys/resource.h>
+#include <unistd.h>
 
 #include <algorithm>
 #include <chrono>
 #include <cstdio>
 #include <cstdlib>
+#include <cstring>
 #include <memory>
 #include <random>
+#include <string>
 #include <thread>
 #include <vector>
 
+#include "cpu/cpu_isa.h"
 #include "gemm/gemm_cpu.h"
+#include "parallel/parallel.h"
 #include "weight/weight_pack_cpu.h"
 
 namespace {
+
+constexpr size_t kHugePageBytes = size_t{2} << 20;
 
 double process_cpu_ms() {
   rusage usage{};
@@ -29,42 +42,125 @@ double process_cpu_ms() {
   return (usage.ru_utime.tv_sec + usage.ru_stime.tv_sec) * 1e3 + (usage.ru_utime.tv_usec + usage.ru_stime.tv_usec) / 1e3;
 }
 
+// On 2 MiB pages, as a DyQLinear keeps its packed weights on Linux (python/dyq/core/host_memory.py): a
+// std::vector's 16-byte alignment splits the kernels' 64-byte loads across cache lines (4 % to 6 % slower
+// decode on the AMD EPYC), and 4 KiB pages cost the decode a TLB miss every 4 KiB.
+using HugeBuffer = std::unique_ptr<uint8_t, decltype(&std::free)>;
+HugeBuffer huge_buffer(size_t bytes) {
+  const size_t rounded = (bytes + kHugePageBytes - 1) / kHugePageBytes * kHugePageBytes;
+  HugeBuffer buffer(static_cast<uint8_t*>(std::aligned_alloc(kHugePageBytes, rounded)), &std::free);
+  if (buffer == nullptr) {
+    std::fprintf(stderr, "out of memory for %zu bytes\n", rounded);
+    std::exit(1);
+  }
+  madvise(buffer.get(), rounded, MADV_HUGEPAGE);  // before the first write; advice only
+  return buffer;
+}
+
+// The largest cache cpu0 reports in sysfs, as bench_linear.py reads it (sysconf's figure on the AMD EPYC
+// virtual machine was ten times its 32 MiB L3); 32 MiB where there is none.
+int64_t last_level_cache_bytes() {
+  int64_t largest = 0;
+  for (int index = 0; index < 8; ++index) {
+    const std::string path = "/sys/devices/system/cpu/cpu0/cache/index" + std::to_string(index) + "/size";
+    FILE* file = std::fopen(path.c_str(), "r");
+    if (file == nullptr) continue;
+    long value = 0;
+    char unit = 0;
+    if (std::fscanf(file, "%ld%c", &value, &unit) >= 1) {
+      const int64_t scale = unit == 'K'   ? int64_t{1} << 10
+                            : unit == 'M' ? int64_t{1} << 20
+                            : unit == 'G' ? int64_t{1} << 30
+                                          : 1;
+      largest = std::max<int64_t>(largest, value * scale);
+    }
+    std::fclose(file);
+  }
+  return largest > 0 ? largest : int64_t{32} << 20;
+}
+
+std::string cpu_model() {
+  FILE* file = std::fopen("/proc/cpuinfo", "r");
+  if (file == nullptr) return "unknown";
+  char line[512];
+  std::string model = "unknown";
+  while (std::fgets(line, sizeof(line), file) != nullptr) {
+    if (std::strncmp(line, "model name", 10) == 0) {
+      const char* value = std::strchr(line, ':');
+      if (value != nullptr) model = std::string(value + 2, std::strcspn(value + 2, "\n"));
+      break;
+    }
+  }
+  std::fclose(file);
+  return model;
+}
+
+unsigned g_threads = 1;
+int thread_count() { return static_cast<int>(g_threads); }
+
+// GB/s of a read of `bytes` zero bytes on g_threads threads, median of 3: memchr for a byte they do not
+// hold, whose libc version the C library picks for the CPU (AVX2 or AVX-512 on x86), so that the read runs
+// at the memory's speed whatever flags compiled this file (a plain loop at -O2 read 19 GB/s on the AMD EPYC,
+// where torch's sum reads 30 to 35).
+double stream_read_gbps(const uint8_t* data, size_t bytes) {
+  std::vector<double> rates;
+  for (int rep = 0; rep < 3; ++rep) {
+    std::vector<const void*> found(g_threads);
+    const auto start = std::chrono::steady_clock::now();
+    std::vector<std::thread> workers;
+    for (unsigned t = 0; t < g_threads; ++t) {
+      workers.emplace_back([&, t] {
+        const size_t begin = bytes * t / g_threads, end = bytes * (t + 1) / g_threads;
+        found[t] = std::memchr(data + begin, 1, end - begin);
+      });
+    }
+    for (auto& worker : workers) worker.join();
+    rates.push_back(bytes / std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count() / 1e9);
+    for (const void* hit : found) {
+      if (hit != nullptr) std::printf("the streaming read found a byte it should not have\n");
+    }
+  }
+  std::sort(rates.begin(), rates.end());
+  return rates[1];
+}
+
 struct Row {
+  std::string mode;
   int64_t m, n, k;
   int act_bits;
-  double median_ms, cpu_per_thread_ms;
+  double median_ms, cpu_per_thread_ms, gbps, stream_gbps;
 };
 
 }  // namespace
 
 int main(int argc, char** argv) {
   const char* json_path = argc > 1 ? argv[1] : "bench_cpu_kernels.json";
+  g_threads = argc > 2 ? static_cast<unsigned>(std::atoi(argv[2])) : std::max(1u, std::thread::hardware_concurrency());
+  if (g_threads == 0) {
+    std::fprintf(stderr, "threads must be at least 1, got %s\n", argv[2]);
+    return 1;
+  }
+  dyq::set_thread_count_source(thread_count);
   constexpr int kGroupSize = 128;
-  constexpr size_t kHugePageBytes = size_t{2} << 20;
-  const unsigned threads = std::max(1u, std::thread::hardware_concurrency());
   std::mt19937 rng(0);
   std::normal_distribution<float> normal(0.0f, 1.0f);
   std::vector<Row> rows;
-  std::printf("%6s %6s %6s %8s %12s %14s\n", "M", "N", "K", "act_bits", "median ms", "cpu/thread ms");
-  for (auto [n, k] : {std::pair<int64_t, int64_t>{4096, 4096}, {11008, 4096}, {4096, 11008}}) {
+  const std::pair<int64_t, int64_t> shapes[] = {{4096, 4096}, {11008, 4096}, {4096, 11008}};
+
+  std::printf("hot, %u thread(s)\n%6s %6s %6s %8s %12s %14s\n", g_threads, "M", "N", "K", "act_bits", "median ms",
+              "cpu/thread ms");
+  for (auto [n, k] : shapes) {
     std::vector<float> weight(n * k);
     for (auto& w : weight) w = 0.02f * normal(rng);
-    // On 2 MiB pages, as a DyQLinear keeps its packed weights on Linux (python/dyq/core/host_memory.py): a
-    // std::vector's 16-byte alignment splits the kernels' 64-byte loads across cache lines (4 % to 6 % slower
-    // decode on the AMD EPYC), and 4 KiB pages cost the decode a TLB miss every 4 KiB.
-    const size_t qweight_bytes = (n * k / 2 + kHugePageBytes - 1) / kHugePageBytes * kHugePageBytes;
-    std::unique_ptr<uint8_t, decltype(&std::free)> qweight_storage(
-        static_cast<uint8_t*>(std::aligned_alloc(kHugePageBytes, qweight_bytes)), &std::free);
-    madvise(qweight_storage.get(), qweight_bytes, MADV_HUGEPAGE);  // before the first write; advice only
-    uint8_t* const qweight = qweight_storage.get();
+    HugeBuffer qweight = huge_buffer(n * k / 2);
     std::vector<float> scales(n * k / kGroupSize);
-    dyq::cpu::quantize_weight(weight.data(), n, k, kGroupSize, qweight, scales.data());
+    dyq::cpu::quantize_weight(weight.data(), n, k, kGroupSize, qweight.get(), scales.data());
     for (int64_t m : {1, 16, 256}) {
       std::vector<float> x(m * k), out(m * n);
       for (auto& v : x) v = normal(rng);
       for (int act_bits : {2, 4, 8, 16}) {
         auto run = [&] {
-          dyq::cpu::gemm(x.data(), dyq::ScalarType::kFloat32, qweight, scales.data(), nullptr, m, n, k,
+          dyq::cpu::gemm(x.data(), dyq::ScalarType::kFloat32, qweight.get(), scales.data(), nullptr, m, n, k,
                          kGroupSize, act_bits, out.data());
         };
         run();  // warm-up
@@ -76,21 +172,93 @@ int main(int argc, char** argv) {
           run();
           times.push_back(std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - start).count());
         }
-        const double cpu_per_thread = (process_cpu_ms() - cpu_start) / reps / threads;
+        const double cpu_per_thread = (process_cpu_ms() - cpu_start) / reps / g_threads;
         std::sort(times.begin(), times.end());
-        rows.push_back({m, n, k, act_bits, times[times.size() / 2], cpu_per_thread});
+        rows.push_back({"hot", m, n, k, act_bits, times[times.size() / 2], cpu_per_thread, 0.0, 0.0});
         std::printf("%6ld %6ld %6ld %8d %12.3f %14.3f\n", m, n, k, act_bits, rows.back().median_ms, cpu_per_thread);
       }
     }
   }
+
+  const size_t stream_bytes = size_t{1} << 30;
+  HugeBuffer stream = huge_buffer(stream_bytes);
+  std::memset(stream.get(), 0, stream_bytes);
+  stream_read_gbps(stream.get(), stream_bytes);  // the first reads after the writes ran slower
+  const int64_t cache_bytes = last_level_cache_bytes();
+  std::printf("\ncold decode (M = 1), %u thread(s), copies over 4 x %ld MiB of last-level cache\n"
+              "%6s %6s %8s %10s %8s %14s %8s\n",
+              g_threads, static_cast<long>(cache_bytes >> 20), "N", "K", "act_bits", "median ms", "GB/s",
+              "stream GB/s", "share");
+  for (auto [n, k] : shapes) {
+    const int64_t weight_bytes = n * k / 2, scale_bytes = n * (k / kGroupSize) * int64_t{sizeof(float)};
+    const int copies = static_cast<int>(std::max<int64_t>(2, (4 * cache_bytes + weight_bytes + scale_bytes - 1) /
+                                                                 (weight_bytes + scale_bytes)));
+    std::vector<HugeBuffer> qweights;
+    std::vector<HugeBuffer> scales;
+    for (int c = 0; c < copies; ++c) {
+      qweights.push_back(huge_buffer(weight_bytes));
+      scales.push_back(huge_buffer(scale_bytes));
+      if (c == 0) {
+        std::vector<float> weight(n * k);
+        for (auto& w : weight) w = 0.02f * normal(rng);
+        dyq::cpu::quantize_weight(weight.data(), n, k, kGroupSize, qweights[0].get(),
+                                  reinterpret_cast<float*>(scales[0].get()));
+      } else {
+        std::memcpy(qweights[c].get(), qweights[0].get(), weight_bytes);
+        std::memcpy(scales[c].get(), scales[0].get(), scale_bytes);
+      }
+    }
+    std::vector<float> x(k), out(n);
+    for (auto& v : x) v = normal(rng);
+    const double stream_before = stream_read_gbps(stream.get(), stream_bytes);
+    const size_t first_row = rows.size();
+    for (int act_bits : {2, 4, 8, 16}) {
+      std::vector<double> times;
+      constexpr int kCalls = 60;
+      for (int i = 0; i < copies + kCalls; ++i) {  // the first pass over the copies untimed
+        const int c = i % copies;
+        const auto start = std::chrono::steady_clock::now();
+        dyq::cpu::gemm(x.data(), dyq::ScalarType::kFloat32, qweights[c].get(),
+                       reinterpret_cast<const float*>(scales[c].get()), nullptr, 1, n, k, kGroupSize, act_bits,
+                       out.data());
+        if (i >= copies) {
+          times.push_back(std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - start).count());
+        }
+      }
+      std::sort(times.begin(), times.end());
+      const double ms = times[times.size() / 2];
+      rows.push_back({"cold", 1, n, k, act_bits, ms, 0.0, (weight_bytes + scale_bytes) / ms / 1e6, 0.0});
+    }
+    // The share is taken against the faster of the reads right before and after: on a shared machine the
+    // bandwidth moves within a run.
+    const double stream_gbps = std::max(stream_before, stream_read_gbps(stream.get(), stream_bytes));
+    for (size_t i = first_row; i < rows.size(); ++i) {
+      Row& row = rows[i];
+      row.stream_gbps = stream_gbps;
+      std::printf("%6ld %6ld %8d %10.3f %8.1f %14.1f %7.0f%%\n", n, k, row.act_bits, row.median_ms, row.gbps,
+                  stream_gbps, 100.0 * row.gbps / stream_gbps);
+    }
+  }
+
   FILE* json = std::fopen(json_path, "w");
   if (json == nullptr) return 1;
-  std::fprintf(json, "{\"device\": \"cpu\", \"threads\": %u, \"group_size\": %d, \"dtype\": \"float32\", \"rows\": [",
-               threads, kGroupSize);
+  const dyq::cpu::CpuPath& path = dyq::cpu::active_cpu_path();
+  std::fprintf(json,
+               "{\"device\": \"cpu\", \"cpu\": \"%s\", \"cpu_isa\": \"%s\", \"threads\": %u, \"group_size\": %d, "
+               "\"dtype\": \"float32\", \"last_level_cache_bytes\": %ld, \"rows\": [",
+               cpu_model().c_str(), path.name, g_threads, kGroupSize, static_cast<long>(cache_bytes));
   for (size_t i = 0; i < rows.size(); ++i) {
     const Row& r = rows[i];
-    std::fprintf(json, "%s\n  {\"m\": %ld, \"n\": %ld, \"k\": %ld, \"act_bits\": %d, \"median_ms\": %.4f, \"cpu_per_thread_ms\": %.4f}",
-                 i ? "," : "", r.m, r.n, r.k, r.act_bits, r.median_ms, r.cpu_per_thread_ms);
+    std::fprintf(json,
+                 "%s\n  {\"mode\": \"%s\", \"m\": %ld, \"n\": %ld, \"k\": %ld, \"act_bits\": %d, \"kernel\": \"%s\", "
+                 "\"median_ms\": %.4f",
+                 i ? "," : "", r.mode.c_str(), r.m, r.n, r.k, r.act_bits,
+                 path.kernels->gemm_kernel(r.m, r.k, kGroupSize, r.act_bits), r.median_ms);
+    if (r.mode == "hot") {
+      std::fprintf(json, ", \"cpu_per_thread_ms\": %.4f}", r.cpu_per_thread_ms);
+    } else {
+      std::fprintf(json, ", \"gbps\": %.2f, \"stream_read_gbps\": %.2f}", r.gbps, r.stream_gbps);
+    }
   }
   std::fprintf(json, "\n]}\n");
   std::fclose(json);
