@@ -614,8 +614,8 @@ bool run_panels(ActivationRow&& activation_row, const uint8_t* qweight, const fl
         for (int64_t r = 0; r < m; ++r) rows[r] = Kind::advance(activation_row(r), col, col / group_size);
         for (int64_t r = 0; r < m; r += Kind::kTileRows) {
           const PanelSums<Element, kPanelOutputs> sums{totals.data() + r * kPanelOutputs, col == 0,
-                                        to_output ? out + r * n + row_begin : nullptr, n,
-                                        bias != nullptr ? bias + row_begin : nullptr};
+                                                       to_output ? out + r * n + row_begin : nullptr, n,
+                                                       bias != nullptr ? bias + row_begin : nullptr};
           dispatch_tile_rows<Kind::kTileRows>(static_cast<int>(std::min<int64_t>(Kind::kTileRows, m - r)),
                                               [&](auto tile_rows) {
                                                 nonfinite |= Kind::template kernel<decltype(tile_rows)::value>(

@@ -965,8 +965,8 @@ bool run_panels(const ActivationTiles& tiles, const uint8_t* qweight, const floa
           const int64_t tile = row / kPanelTileRows;
           const int rows = static_cast<int>(std::min<int64_t>(kPanelTileRows, m - row));
           const PanelSums<Element, kPanelColumns> sums{totals.data() + row * kPanelColumns, col == 0,
-                                        to_output ? out + row * n + weight_row : nullptr, n,
-                                        bias != nullptr ? bias + weight_row : nullptr};
+                                                       to_output ? out + row * n + weight_row : nullptr, n,
+                                                       bias != nullptr ? bias + weight_row : nullptr};
           dispatch_tile_rows<kPanelTileRows>(rows, [&](auto tile_rows) {
             nonfinite |= panel_kernel<Kind, decltype(tile_rows)::value>(
                 panel, tiles.tile_words(tile, col / kQuadColumns),
