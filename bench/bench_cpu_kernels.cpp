@@ -1,17 +1,20 @@
 // Timing of dyq::cpu::gemm on the Llama layer shapes, for every act_bits, with nothing of torch around it.
-// Not built by default:
+// Built with the C++ tests (-DDYQ_BUILD_TESTS=ON), run by hand:
 //
-//   c++ -O2 -std=c++17 -I csrc -I /usr/include/eigen3 bench/bench_cpu_kernels.cpp
-//       build/ctest/libdyq_cpu_kernels.a -lpthread -o /tmp/bench_cpu_kernels
-//   [DYQ_CPU_ISA=avx512|avx2|portable] /tmp/bench_cpu_kernels [results.json [threads]]
+//   cmake -S . -B build/ctest -G Ninja -DDYQ_BUILD_PYTHON=OFF -DDYQ_BUILD_TESTS=ON && cmake --build build/ctest
+//   [DYQ_CPU_ISA=avx512|avx2|portable] build/ctest/dyq_bench_cpu_kernels [results.json [threads]]
 //
 // Hot: M = 1, 16 and 256 on one copy of the weights. Prints a table (median wall time, and process CPU
 // time divided by the thread count, which stays meaningful on a shared machine).
 // Cold decode: M = 1 over as many copies of the weights as fill four times the last-level cache, called in
-// turn, each width's median time as bandwidth (packed weights and scales over the time), beside a streaming
-// read of 1 GiB on as many threads, timed right before each shape: the kernels' own share of the memory's
-// speed, which bench_linear.py measures through torch (its per-call costs included). Both tables go to the
-// JSON.
+// turn, as bandwidth (packed weights and scales over the time), against a streaming read of 1 GiB on as
+// many threads: the kernels' own share of the memory's speed, which bench_linear.py measures through torch
+// (its per-call costs included). Each shape runs in rounds: a read, then a stretch of calls of every width,
+// in an order shuffled per round; a width's share is the median over the rounds of its speed over the
+// round's read, so that the drift of a shared machine reaches the read and the decode it is compared with
+// alike, and no width always runs first. (With one read before and after each shape and each width's calls
+// in one stretch, the one-thread shares of three runs on the AMD EPYC spread over 71 % to 94 % at the
+// integer widths; of four runs in rounds, over 78 % to 87 %.) Both tables go to the JSON.
 #include <sys/mman.h>
 #include <sys/resource.h>
 #include <unistd.h>
@@ -98,30 +101,31 @@ std::string cpu_model() {
 unsigned g_threads = 1;
 int thread_count() { return static_cast<int>(g_threads); }
 
-// GB/s of a read of `bytes` zero bytes on g_threads threads, median of 3: memchr for a byte they do not
+// GB/s of one read of `bytes` zero bytes on g_threads threads: memchr for a byte they do not
 // hold, whose libc version the C library picks for the CPU (AVX2 or AVX-512 on x86), so that the read runs
 // at the memory's speed whatever flags compiled this file (a plain loop at -O2 read 19 GB/s on the AMD EPYC,
 // where torch's sum reads 30 to 35).
 double stream_read_gbps(const uint8_t* data, size_t bytes) {
-  std::vector<double> rates;
-  for (int rep = 0; rep < 3; ++rep) {
-    std::vector<const void*> found(g_threads);
-    const auto start = std::chrono::steady_clock::now();
-    std::vector<std::thread> workers;
-    for (unsigned t = 0; t < g_threads; ++t) {
-      workers.emplace_back([&, t] {
-        const size_t begin = bytes * t / g_threads, end = bytes * (t + 1) / g_threads;
-        found[t] = std::memchr(data + begin, 1, end - begin);
-      });
-    }
-    for (auto& worker : workers) worker.join();
-    rates.push_back(bytes / std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count() / 1e9);
-    for (const void* hit : found) {
-      if (hit != nullptr) std::printf("the streaming read found a byte it should not have\n");
-    }
+  std::vector<const void*> found(g_threads);
+  const auto start = std::chrono::steady_clock::now();
+  std::vector<std::thread> workers;
+  for (unsigned t = 0; t < g_threads; ++t) {
+    workers.emplace_back([&, t] {
+      const size_t begin = bytes * t / g_threads, end = bytes * (t + 1) / g_threads;
+      found[t] = std::memchr(data + begin, 1, end - begin);
+    });
   }
-  std::sort(rates.begin(), rates.end());
-  return rates[1];
+  for (auto& worker : workers) worker.join();
+  const double gbps = bytes / std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count() / 1e9;
+  for (const void* hit : found) {
+    if (hit != nullptr) std::printf("the streaming read found a byte it should not have\n");
+  }
+  return gbps;
+}
+
+double median(std::vector<double> values) {
+  std::sort(values.begin(), values.end());
+  return values[values.size() / 2];
 }
 
 struct Row {
@@ -129,6 +133,7 @@ struct Row {
   int64_t m, n, k;
   int act_bits;
   double median_ms, cpu_per_thread_ms, gbps, stream_gbps;
+  double share = 0.0, share_min = 0.0, share_max = 0.0;  // cold: over the rounds
 };
 
 }  // namespace
@@ -185,10 +190,12 @@ int main(int argc, char** argv) {
   std::memset(stream.get(), 0, stream_bytes);
   stream_read_gbps(stream.get(), stream_bytes);  // the first reads after the writes ran slower
   const int64_t cache_bytes = last_level_cache_bytes();
-  std::printf("\ncold decode (M = 1), %u thread(s), copies over 4 x %ld MiB of last-level cache\n"
-              "%6s %6s %8s %10s %8s %14s %8s\n",
-              g_threads, static_cast<long>(cache_bytes >> 20), "N", "K", "act_bits", "median ms", "GB/s",
-              "stream GB/s", "share");
+  constexpr int kColdRounds = 9, kCallsPerRound = 24;
+  std::mt19937 order_rng(1);
+  std::printf("\ncold decode (M = 1), %u thread(s), copies over 4 x %ld MiB of last-level cache, %d rounds of a "
+              "read and %d calls of each width\n%6s %6s %8s %10s %8s %14s %8s %20s\n",
+              g_threads, static_cast<long>(cache_bytes >> 20), kColdRounds, kCallsPerRound, "N", "K", "act_bits",
+              "median ms", "GB/s", "stream GB/s", "share", "rounds' shares");
   for (auto [n, k] : shapes) {
     const int64_t weight_bytes = n * k / 2, scale_bytes = n * (k / kGroupSize) * int64_t{sizeof(float)};
     const int copies = static_cast<int>(std::max<int64_t>(2, (4 * cache_bytes + weight_bytes + scale_bytes - 1) /
@@ -210,33 +217,40 @@ int main(int argc, char** argv) {
     }
     std::vector<float> x(k), out(n);
     for (auto& v : x) v = normal(rng);
-    const double stream_before = stream_read_gbps(stream.get(), stream_bytes);
-    const size_t first_row = rows.size();
-    for (int act_bits : {2, 4, 8, 16}) {
-      std::vector<double> times;
-      constexpr int kCalls = 60;
-      for (int i = 0; i < copies + kCalls; ++i) {  // the first pass over the copies untimed
-        const int c = i % copies;
-        const auto start = std::chrono::steady_clock::now();
-        dyq::cpu::gemm(x.data(), dyq::ScalarType::kFloat32, qweights[c].get(),
-                       reinterpret_cast<const float*>(scales[c].get()), nullptr, 1, n, k, kGroupSize, act_bits,
-                       out.data());
-        if (i >= copies) {
-          times.push_back(std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - start).count());
+    auto call = [&](int copy, int act_bits) {
+      dyq::cpu::gemm(x.data(), dyq::ScalarType::kFloat32, qweights[copy].get(),
+                     reinterpret_cast<const float*>(scales[copy].get()), nullptr, 1, n, k, kGroupSize, act_bits,
+                     out.data());
+    };
+    for (int c = 0; c < copies; ++c) call(c, 8);  // a first, untimed pass over the copies
+    int widths[] = {2, 4, 8, 16};
+    std::vector<double> reads, times[4], shares[4];  // per round; times and shares by width (index of 2, 4, ..)
+    int copy = 0;
+    for (int round = 0; round < kColdRounds; ++round) {
+      const double read = stream_read_gbps(stream.get(), stream_bytes);
+      reads.push_back(read);
+      std::shuffle(std::begin(widths), std::end(widths), order_rng);
+      for (int act_bits : widths) {
+        std::vector<double> call_ms;
+        for (int i = 0; i < kCallsPerRound; ++i, copy = (copy + 1) % copies) {
+          const auto start = std::chrono::steady_clock::now();
+          call(copy, act_bits);
+          call_ms.push_back(std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - start).count());
         }
+        const int w = __builtin_ctz(act_bits) - 1;
+        times[w].push_back(median(call_ms));
+        shares[w].push_back((weight_bytes + scale_bytes) / times[w].back() / 1e6 / read);
       }
-      std::sort(times.begin(), times.end());
-      const double ms = times[times.size() / 2];
-      rows.push_back({"cold", 1, n, k, act_bits, ms, 0.0, (weight_bytes + scale_bytes) / ms / 1e6, 0.0});
     }
-    // The share is taken against the faster of the reads right before and after: on a shared machine the
-    // bandwidth moves within a run.
-    const double stream_gbps = std::max(stream_before, stream_read_gbps(stream.get(), stream_bytes));
-    for (size_t i = first_row; i < rows.size(); ++i) {
-      Row& row = rows[i];
-      row.stream_gbps = stream_gbps;
-      std::printf("%6ld %6ld %8d %10.3f %8.1f %14.1f %7.0f%%\n", n, k, row.act_bits, row.median_ms, row.gbps,
-                  stream_gbps, 100.0 * row.gbps / stream_gbps);
+    for (int w = 0; w < 4; ++w) {
+      const double ms = median(times[w]);
+      Row row{"cold", 1, n, k, 2 << w, ms, 0.0, (weight_bytes + scale_bytes) / ms / 1e6, median(reads)};
+      row.share = median(shares[w]);
+      row.share_min = *std::min_element(shares[w].begin(), shares[w].end());
+      row.share_max = *std::max_element(shares[w].begin(), shares[w].end());
+      rows.push_back(row);
+      std::printf("%6ld %6ld %8d %10.3f %8.1f %14.1f %7.0f%% %13.0f%% to %.0f%%\n", n, k, row.act_bits, ms, row.gbps,
+                  row.stream_gbps, 100.0 * row.share, 100.0 * row.share_min, 100.0 * row.share_max);
     }
   }
 
@@ -245,8 +259,11 @@ int main(int argc, char** argv) {
   const dyq::cpu::CpuPath& path = dyq::cpu::active_cpu_path();
   std::fprintf(json,
                "{\"device\": \"cpu\", \"cpu\": \"%s\", \"cpu_isa\": \"%s\", \"threads\": %u, \"group_size\": %d, "
-               "\"dtype\": \"float32\", \"last_level_cache_bytes\": %ld, \"rows\": [",
-               cpu_model().c_str(), path.name, g_threads, kGroupSize, static_cast<long>(cache_bytes));
+               "\"dtype\": \"float32\", \"last_level_cache_bytes\": %ld, \"stream_read_bytes\": %zu, "
+               "\"cold_rounds\": %d, \"cold_calls_per_round\": %d, \"cold_share\": \"median over the rounds of "
+               "the width's GB/s over the round's read\", \"rows\": [",
+               cpu_model().c_str(), path.name, g_threads, kGroupSize, static_cast<long>(cache_bytes), stream_bytes,
+               kColdRounds, kCallsPerRound);
   for (size_t i = 0; i < rows.size(); ++i) {
     const Row& r = rows[i];
     std::fprintf(json,
@@ -257,7 +274,10 @@ int main(int argc, char** argv) {
     if (r.mode == "hot") {
       std::fprintf(json, ", \"cpu_per_thread_ms\": %.4f}", r.cpu_per_thread_ms);
     } else {
-      std::fprintf(json, ", \"gbps\": %.2f, \"stream_read_gbps\": %.2f}", r.gbps, r.stream_gbps);
+      std::fprintf(json,
+                   ", \"gbps\": %.2f, \"stream_read_gbps\": %.2f, \"share_of_read\": %.3f, "
+                   "\"share_of_read_min\": %.3f, \"share_of_read_max\": %.3f}",
+                   r.gbps, r.stream_gbps, r.share, r.share_min, r.share_max);
     }
   }
   std::fprintf(json, "\n]}\n");
