@@ -451,8 +451,9 @@ inline __m512 dot_bf16_pairs(__m512 acc, __m512i a, __m512i b) {
 // vdpbf16ps), no shuffles, against 8 with byte unpacks. Each block's four products run as two chains of
 // two, added before the block's scale. On the AMD EPYC, where this kernel is bound by its instructions
 // (one thread, C++ loop, alternating builds), both together took M = 1 from 391 to 369 us on 4096 x 4096
-// in cache (6 %), from 12.0 to 10.7 us on the policy's 768 x 256 and 4 % off cold weights; running two
-// weight rows per call to share the activation loads, as the integer kernel does, was slower (488 us).
+// in cache (6 %), from 12.0 to 10.7 us on the policy's 768 x 256 and 4 % off cold weights. Several weight
+// rows per call share the activation loads where a row's activations would not stay in L1 or the per-call
+// costs weigh (bf16_decode_shares_activations).
 // Then sum(x * q_w) = sum(x * w) - 136 * sum(x), whose second term is the activations' own, once per
 // group. The bias makes the terms up to 18 times larger than x * q_w (|w| <= 143 against |q_w| <= 8);
 // each of the 16 lanes adds them in about K / 128 + 4 fp32 roundings of 2^-24, so at K = 11008 the error
@@ -532,21 +533,28 @@ Bf16DecodeActivations bf16_decode_activations(const Element* x, int64_t m, int64
   return out;
 }
 
-// sums[r] = y[r] (without bias) for one weight row and kRows bf16 activation rows.
-template <int kRows>
+// Whether the bf16 row kernel takes several weight rows per call (bf16_decode_columns), which then share
+// each block's activation loads, rather than one, which reads its weights as one stream. On the AMD EPYC
+// (M = 1, one thread, N = 4096, weights rotated through four times the L3, C++ loop) one row per call was
+// 4 % to 10 % faster from K = 6144 to 12288 (0.93 against 1.01 ms at K = 11008) and several rows faster
+// beyond, where a row's bf16 activations (2 K bytes, 27 KiB at K = 13824) no longer stay in the 32 KiB L1
+// beside the weights streaming through it: one row a call took 1.69 against 1.33 ms at K = 13824, 3.2
+// against 1.47 ms at K = 16384 and 6.0 against 2.5 ms at K = 28672 (a third of the read's speed). At K =
+// 4096 and below they tied cold (0.36 ms), and in cache several rows were faster: the policy's 768 x 256
+// at M = 1 in 8 against 10 us, 4096 x 4096 at M = 2 to 4 by 10 % to 17 %.
+inline bool bf16_decode_shares_activations(int64_t k) { return k <= 4096 || k > 12288; }
+
+// Weight rows per call where they share the activations: four weight rows' 16 vectors of bf16 weights and
+// two activation rows' accumulators would not fit the 32 registers.
+constexpr int bf16_decode_columns(int rows) { return rows == 1 ? 4 : rows <= 4 ? 2 : 1; }
+
+// sums[c * kRows + r] = y[r] (without bias) of weight row c, for kCols consecutive weight rows (row c at
+// weight_row + c * k / 2, its scales at scales_row + c * groups) and kRows bf16 activation rows.
+template <int kRows, int kCols>
 void bf16_decode_kernel(const uint8_t* weight_row, const float* scales_row, int64_t k, int group_size,
                         const Bf16DecodeRow* rows, float* sums) {
   const int64_t groups = group_count(k, group_size);
-  float corrections[kRows];
-  for (int r = 0; r < kRows; ++r) {
-    __m512 correction = _mm512_setzero_ps();
-    for (int64_t g = 0; g < groups; g += 16) {
-      const __mmask16 lanes = groups - g >= 16 ? kAll16 : static_cast<__mmask16>((1u << (groups - g)) - 1);
-      correction = _mm512_fmadd_ps(_mm512_maskz_loadu_ps(lanes, scales_row + g),
-                                   _mm512_maskz_loadu_ps(lanes, rows[r].offsets + g), correction);
-    }
-    corrections[r] = reduce_lanes<AddLanes>(correction);
-  }
+  const int64_t row_bytes = k / 2;
   // fp32 lane i holds columns of the block's 32-column chunk i / 4.
   const __m512i lane_group = srli_epi32(
       slli_epi32(_mm512_setr_epi32(0, 0, 0, 0, 1, 1, 1, 1, 2, 2, 2, 2, 3, 3, 3, 3), 5), __builtin_ctz(group_size));
@@ -555,32 +563,53 @@ void bf16_decode_kernel(const uint8_t* weight_row, const float* scales_row, int6
   const int64_t full_blocks = k / kBlockColumns;
   const int64_t blocks = (k + kBlockColumns - 1) / kBlockColumns;
   const __mmask64 tail_bytes = (__mmask64{1} << ((k % kBlockColumns) / 2)) - 1;
-  __m512 acc[kRows];
-  for (int r = 0; r < kRows; ++r) acc[r] = _mm512_setzero_ps();
+  __m512 acc[kCols * kRows];  // [c][r]
+  for (int i = 0; i < kCols * kRows; ++i) acc[i] = _mm512_setzero_ps();
   for (int64_t t = 0; t < blocks; ++t) {
-    const uint8_t* packed = weight_row + t * (kBlockColumns / 2);
-    prefetch_weights(packed);
-    // Past k the weights do not matter: the activations there are zero.
-    const __m512i words =
-        t < full_blocks ? _mm512_loadu_si512(packed) : _mm512_maskz_loadu_epi8(tail_bytes, packed);
-    // (shifted & 0xF) ^ 0x4308 is ternary logic 0x6A on (shifted, low_nibble, exponent_and_flip).
-    const __m512i weights[4] = {
-        _mm512_ternarylogic_epi32(words, low_nibble, exponent_and_flip, 0x6A),
-        _mm512_ternarylogic_epi32(_mm512_srli_epi16(words, 4), low_nibble, exponent_and_flip, 0x6A),
-        _mm512_ternarylogic_epi32(_mm512_srli_epi16(words, 8), low_nibble, exponent_and_flip, 0x6A),
-        _mm512_xor_si512(_mm512_srli_epi16(words, 12), exponent_and_flip)};
-    const __m512 scale = block_lanes(scales_row, t, group_size, groups, lane_group);
+    __m512i weights[kCols][4];
+    __m512 scale[kCols];
+    for (int c = 0; c < kCols; ++c) {
+      const uint8_t* packed = weight_row + c * row_bytes + t * (kBlockColumns / 2);
+      prefetch_block<kCols>(weight_row, row_bytes, t, c);
+      // Past k the weights do not matter: the activations there are zero.
+      __m512i words = t < full_blocks ? _mm512_loadu_si512(packed) : _mm512_maskz_loadu_epi8(tail_bytes, packed);
+      // One load in a register: GCC otherwise folds it into each shift, loading the 64 bytes four times.
+      asm("" : "+v"(words));
+      // (shifted & 0xF) ^ 0x4308 is ternary logic 0x6A on (shifted, low_nibble, exponent_and_flip).
+      weights[c][0] = _mm512_ternarylogic_epi32(words, low_nibble, exponent_and_flip, 0x6A);
+      weights[c][1] = _mm512_ternarylogic_epi32(_mm512_srli_epi16(words, 4), low_nibble, exponent_and_flip, 0x6A);
+      weights[c][2] = _mm512_ternarylogic_epi32(_mm512_srli_epi16(words, 8), low_nibble, exponent_and_flip, 0x6A);
+      weights[c][3] = _mm512_xor_si512(_mm512_srli_epi16(words, 12), exponent_and_flip);
+      scale[c] = block_lanes(scales_row + c * groups, t, group_size, groups, lane_group);
+    }
+    // Unrolled, so that the accumulators stay registers (rolled, GCC kept those of 5 activation rows on the
+    // stack, a load and a store around every multiply-add, 5 % slower).
+#pragma GCC unroll 8
     for (int r = 0; r < kRows; ++r) {
       const Bf16DecodeBlock& block = rows[r].blocks[t];
-      __m512 dot[2];
-      for (int h = 0; h < 2; ++h) {
-        dot[h] = dot_bf16_pairs(_mm512_setzero_ps(), _mm512_load_si512(block.words[2 * h]), weights[2 * h]);
-        dot[h] = dot_bf16_pairs(dot[h], _mm512_load_si512(block.words[2 * h + 1]), weights[2 * h + 1]);
+#pragma GCC unroll 4
+      for (int c = 0; c < kCols; ++c) {
+        __m512 dot[2];
+        for (int h = 0; h < 2; ++h) {
+          dot[h] = dot_bf16_pairs(_mm512_setzero_ps(), _mm512_load_si512(block.words[2 * h]), weights[c][2 * h]);
+          dot[h] = dot_bf16_pairs(dot[h], _mm512_load_si512(block.words[2 * h + 1]), weights[c][2 * h + 1]);
+        }
+        acc[c * kRows + r] = _mm512_fmadd_ps(_mm512_add_ps(dot[0], dot[1]), scale[c], acc[c * kRows + r]);
       }
-      acc[r] = _mm512_fmadd_ps(_mm512_add_ps(dot[0], dot[1]), scale, acc[r]);
     }
   }
-  for (int r = 0; r < kRows; ++r) sums[r] = reduce_lanes<AddLanes>(acc[r]) + corrections[r];
+  // Plus -136 * sum(x) of each group, scaled.
+  for (int c = 0; c < kCols; ++c) {
+    for (int r = 0; r < kRows; ++r) {
+      __m512 correction = _mm512_setzero_ps();
+      for (int64_t g = 0; g < groups; g += 16) {
+        const __mmask16 lanes = groups - g >= 16 ? kAll16 : static_cast<__mmask16>((1u << (groups - g)) - 1);
+        correction = _mm512_fmadd_ps(_mm512_maskz_loadu_ps(lanes, scales_row + c * groups + g),
+                                     _mm512_maskz_loadu_ps(lanes, rows[r].offsets + g), correction);
+      }
+      sums[c * kRows + r] = reduce_lanes<AddLanes>(acc[c * kRows + r]) + reduce_lanes<AddLanes>(correction);
+    }
+  }
 }
 #endif
 
@@ -1085,13 +1114,17 @@ bool gemm_typed(const Element* x, const uint8_t* qweight, const float* scales, c
       return panel_gemm<Bf16Panel>(x, qweight, scales, bias, m, n, k, group_size, kBits, out);
     }
     const Bf16DecodeActivations activations = bf16_decode_activations(x, m, k, group_size);
-    // One weight row per call: four at once, the bf16 kernel was no faster (its blocks cost the most).
-    return run_tiles<kMaxTileRows>(
-        qweight, scales, bias, m, n, k, group_size, out, [&](int64_t r) { return activations.row(r); },
-        [&](auto tile_rows, auto, const uint8_t* weight_row, const float* scales_row, const Bf16DecodeRow* rows,
-            float* sums) {
-          bf16_decode_kernel<decltype(tile_rows)::value>(weight_row, scales_row, k, group_size, rows, sums);
-        });
+    const auto row_kernel = [&](auto tile_rows, auto tile_columns, const uint8_t* weight_row, const float* scales_row,
+                                const Bf16DecodeRow* rows, float* sums) {
+      bf16_decode_kernel<decltype(tile_rows)::value, decltype(tile_columns)::value>(weight_row, scales_row, k,
+                                                                                    group_size, rows, sums);
+    };
+    const auto activation_row = [&](int64_t r) { return activations.row(r); };
+    if (bf16_decode_shares_activations(k)) {
+      return run_tiles<kMaxTileRows, bf16_decode_columns>(qweight, scales, bias, m, n, k, group_size, out,
+                                                          activation_row, row_kernel);
+    }
+    return run_tiles<kMaxTileRows>(qweight, scales, bias, m, n, k, group_size, out, activation_row, row_kernel);
 #else
     if (use_panels(m, k, kBits)) {
       return panel_gemm<Fp32Panel>(x, qweight, scales, bias, m, n, k, group_size, kBits, out);

@@ -343,6 +343,21 @@ TEST_P(GemmDecodeFormTest, MatchesNaiveReferenceOnEitherSideOfTheSwitch) {
 
 INSTANTIATE_TEST_SUITE_P(IntegerWidths, GemmDecodeFormTest, ::testing::Values(2, 4, 8));
 
+// W4A16 decode on either side of the bf16 row kernels' switches between several weight rows a call (K up to
+// 4096 and above 12288) and one (in between): every activation row count of the row kernels, N leaving
+// weight rows over, K not always a multiple of the 128-column blocks.
+class GemmBf16DecodeColumnsTest : public ::testing::TestWithParam<int> {};
+
+TEST_P(GemmBf16DecodeColumnsTest, MatchesNaiveReferenceOnEitherSideOfTheSwitches) {
+  const int group_size = GetParam();
+  uint32_t seed = 4000u + group_size;
+  for (const int64_t k : {int64_t{4096}, int64_t{4096} + group_size, int64_t{12288}, int64_t{12288} + group_size + 2}) {
+    for (const int64_t m : {1, 2, 3, 5}) check_problem({m, 19, k, group_size, 16, m == 2, seed++}, ScalarType::kBFloat16);
+  }
+}
+
+INSTANTIATE_TEST_SUITE_P(GroupSizes, GemmBf16DecodeColumnsTest, ::testing::Values(32, 64, 128));
+
 // Around the CPU's switch from the row kernels (decode) to the panel path (at 8 rows on the AVX2 and
 // AVX-512 paths), with N not a multiple of the panels' 16 outputs and K not a multiple of the group size, on
 // fresh random inputs for every width and group size.
