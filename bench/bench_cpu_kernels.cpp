@@ -14,7 +14,7 @@
 // round's read, so that the drift of a shared machine reaches the read and the decode it is compared with
 // alike, and no width always runs first. (With one read before and after each shape and each width's calls
 // in one stretch, the one-thread shares of three runs on the AMD EPYC spread over 71 % to 94 % at the
-// integer widths; of four runs in rounds, over 78 % to 87 %.) Both tables go to the JSON.
+// integer widths; of five runs in rounds, over 78 % to 87 %.) Both tables go to the JSON.
 #include <sys/mman.h>
 #include <sys/resource.h>
 #include <unistd.h>

@@ -401,7 +401,9 @@ void fp32_row_kernel(const uint8_t* weight_row, const float* scales_row, int64_t
       __m512 even[kCols], odd[kCols];
       for (int c = 0; c < kCols; ++c) {
         const uint8_t* packed_row = weight_row + c * row_bytes;
-        if (kCols > 1 && col % kBlockColumns == 0) prefetch_block<kCols>(weight_row, row_bytes, col / kBlockColumns, c);
+        if constexpr (kCols > 1) {  // one sweep over the next rows, as in the other row kernels
+          if (col % kBlockColumns == 0) prefetch_block<kCols>(weight_row, row_bytes, col / kBlockColumns, c);
+        }
         __m128i packed;
         if (col + kChunkColumns <= k) {
           packed = _mm_loadu_si128(reinterpret_cast<const __m128i*>(packed_row + col / 2));
@@ -427,7 +429,9 @@ void fp32_row_kernel(const uint8_t* weight_row, const float* scales_row, int64_t
     }
     for (int c = 0; c < kCols; ++c) {
       const __m512 scale = _mm512_set1_ps(scales_row[c * groups + g]);
-      for (int r = 0; r < kRows; ++r) acc[c * kRows + r] = _mm512_fmadd_ps(group_acc[c * kRows + r], scale, acc[c * kRows + r]);
+      for (int r = 0; r < kRows; ++r) {
+        acc[c * kRows + r] = _mm512_fmadd_ps(group_acc[c * kRows + r], scale, acc[c * kRows + r]);
+      }
     }
   }
   for (int i = 0; i < kCols * kRows; ++i) sums[i] = reduce_lanes<AddLanes>(acc[i]);
@@ -561,7 +565,6 @@ Bf16DecodeActivations bf16_decode_activations(const Element* x, int64_t m, int64
 // 4096 and below they tied cold (0.36 ms), and in cache several rows were faster: the policy's 768 x 256
 // at M = 1 in 8 against 10 us, 4096 x 4096 at M = 2 to 4 by 10 % to 17 %.
 inline bool bf16_decode_shares_activations(int64_t k) { return k <= 4096 || k > 12288; }
-
 
 // sums[c * kRows + r] = y[r] (without bias) of weight row c, for kCols consecutive weight rows (row c at
 // weight_row + c * k / 2, its scales at scales_row + c * groups) and kRows bf16 activation rows.

@@ -352,7 +352,9 @@ TEST_P(GemmBf16DecodeColumnsTest, MatchesNaiveReferenceOnEitherSideOfTheSwitches
   const int group_size = GetParam();
   uint32_t seed = 4000u + group_size;
   for (const int64_t k : {int64_t{4096}, int64_t{4096} + group_size, int64_t{12288}, int64_t{12288} + group_size + 2}) {
-    for (const int64_t m : {1, 2, 3, 5}) check_problem({m, 19, k, group_size, 16, m == 2, seed++}, ScalarType::kBFloat16);
+    for (const int64_t m : {1, 2, 3, 5}) {
+      check_problem({m, 19, k, group_size, 16, m == 2, seed++}, ScalarType::kBFloat16);
+    }
   }
 }
 
