@@ -191,7 +191,10 @@ void decode_int_kernel(const uint8_t* weight_rows, const float* scales_rows, int
   // Block t of every weight row into the accumulators of `chain`; `tail`: the rows' last, partial block,
   // whose bytes past k read as u = 0 (nibbles 8), so that they add nothing to z_x * sum(u) (their
   // activation codes are 0).
+  // Unrolled, so that the accumulators stay registers: indexed in a loop, GCC kept them on the stack, a load
+  // and a store around every multiply-add.
   auto accumulate = [&](int64_t t, int chain, bool tail) {
+#pragma GCC unroll 4
     for (int c = 0; c < kCols; ++c) {
       const uint8_t* packed = weight_rows + c * row_bytes + t * (kBlockColumns / 2);
       alignas(32) uint8_t tail_bytes[32];
@@ -216,6 +219,7 @@ void decode_int_kernel(const uint8_t* weight_rows, const float* scales_rows, int
                                                           t * kCols * (kBlockColumns / 2) + 64 * line);
       }
     }
+#pragma GCC unroll 2
     for (int chain = 0; chain < kChains; ++chain) accumulate(t + chain, chain, false);
   }
   if (t < full_blocks) accumulate(t++, 0, false);
