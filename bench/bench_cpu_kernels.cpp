@@ -2,7 +2,7 @@
 // Built with the C++ tests (-DDYQ_BUILD_TESTS=ON), run by hand:
 //
 //   cmake -S . -B build/ctest -G Ninja -DDYQ_BUILD_PYTHON=OFF -DDYQ_BUILD_TESTS=ON && cmake --build build/ctest
-//   [DYQ_CPU_ISA=avx512|avx2|portable] build/ctest/dyq_bench_cpu_kernels [results.json [threads]]
+//   [DYQ_CPU_ISA=avx512|avx_vnni|avx2|portable] build/ctest/dyq_bench_cpu_kernels [results.json [threads]]
 //
 // Hot: M = 1, 16 and 256 on one copy of the weights. Prints a table (median wall time, and process CPU
 // time divided by the thread count, which stays meaningful on a shared machine).

@@ -1,5 +1,7 @@
-# ctest script: disassembles each CPU path's object (csrc/cpu/kernels_<isa>.cpp) and fails when a path
-# other than AVX-512 uses a zmm register, or when the AVX-512 one uses none (the check would be vacuous).
+# ctest script: disassembles each CPU path's object (csrc/cpu/kernels_<isa>.cpp) and fails when a path that
+# runs on CPUs without AVX-512 (portable, avx2, avx_vnni) uses a zmm register, when the AVX-512 ones use none
+# (the check would be vacuous), or when the AVX-VNNI path's dot products are not VEX-encoded vpdpbusd (its
+# EVEX twin, which runs only on CPUs with AVX-512 VNNI, may use zmm for copies but must use EVEX vpdpbusd).
 # Called with -DOBJDUMP=<objdump> -DOBJECTS=<the objects of dyq_cpu_isa_kernels, ;-separated>.
 foreach(_object IN LISTS OBJECTS)
   get_filename_component(_name ${_object} NAME)
@@ -9,12 +11,23 @@ foreach(_object IN LISTS OBJECTS)
   endif()
   string(REGEX MATCHALL "%zmm[0-9]+" _zmm "${_asm}")
   list(LENGTH _zmm _count)
+  string(REGEX MATCHALL "{vex} vpdpbusd" _vex_dots "${_asm}")
+  list(LENGTH _vex_dots _vex_count)
+  string(REGEX MATCHALL "vpdpbusd" _dots "${_asm}")
+  list(LENGTH _dots _dot_count)
   if(_name MATCHES "kernels_avx512")
     if(_count EQUAL 0)
       message(FATAL_ERROR "${_name}: no zmm register in the AVX-512 path")
     endif()
+  elseif(_name MATCHES "kernels_avx_vnni_evex")
+    if(_dot_count EQUAL 0 OR _vex_count GREATER 0)
+      message(FATAL_ERROR "${_name}: ${_dot_count} vpdpbusd, ${_vex_count} of them VEX-encoded (expected some, none)")
+    endif()
   elseif(_count GREATER 0)
-    message(FATAL_ERROR "${_name}: ${_count} zmm register uses outside the AVX-512 path")
+    message(FATAL_ERROR "${_name}: ${_count} zmm register uses outside the AVX-512 paths")
   endif()
-  message(STATUS "${_name}: ${_count} zmm register uses")
+  if(_name MATCHES "kernels_avx_vnni.cpp" AND (_vex_count EQUAL 0 OR NOT _vex_count EQUAL _dot_count))
+    message(FATAL_ERROR "${_name}: ${_dot_count} vpdpbusd, ${_vex_count} of them VEX-encoded (expected all)")
+  endif()
+  message(STATUS "${_name}: ${_count} zmm register uses, ${_dot_count} vpdpbusd (${_vex_count} VEX-encoded)")
 endforeach()

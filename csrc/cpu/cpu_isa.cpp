@@ -23,6 +23,12 @@ extern const CpuKernelSet kernels;
 namespace avx512 {
 extern const CpuKernelSet kernels;
 }
+namespace avx_vnni {
+extern const CpuKernelSet kernels;
+}
+namespace avx_vnni_evex {
+extern const CpuKernelSet kernels;
+}
 namespace avx2 {
 extern const CpuKernelSet kernels;
 }
@@ -62,6 +68,23 @@ bool avx2_runs_here() {
   __builtin_cpu_init();
   return __builtin_cpu_supports("avx2") && __builtin_cpu_supports("fma") && __builtin_cpu_supports("f16c");
 }
+
+// CPUID leaf 7, subleaf 1 reports AVX-VNNI, the VEX-encoded vpdpbusd (EAX bit 4).
+bool has_avx_vnni() {
+  unsigned eax = 0, ebx = 0, ecx = 0, edx = 0;
+  return __get_cpuid_count(7, 1, &eax, &ebx, &ecx, &edx) && (eax & (1u << 4)) != 0;
+}
+
+// The AVX-VNNI path runs in its VEX encoding, or in its EVEX one on CPUs with AVX-512 VNNI and VL.
+bool avx_vnni_runs_here() {
+  return avx2_runs_here() && (has_avx_vnni() || (__builtin_cpu_supports("avx512f") &&
+                                                 __builtin_cpu_supports("avx512vl") &&
+                                                 __builtin_cpu_supports("avx512vnni")));
+}
+
+const CpuKernelSet* avx_vnni_kernels() {
+  return avx2_runs_here() && has_avx_vnni() ? &avx_vnni::kernels : &avx_vnni_evex::kernels;
+}
 #endif
 
 bool portable_runs_here() { return true; }
@@ -97,6 +120,8 @@ const std::vector<CpuPath>& cpu_paths() {
        &avx512_amx::kernels},
       {"avx512_bf16", "AVX-512 F/BW/DQ/VL with VNNI, VBMI and BF16", avx512_bf16_runs_here, &avx512_bf16::kernels},
       {"avx512", "AVX-512 F/BW/DQ/VL with VNNI and VBMI", avx512_runs_here, &avx512::kernels},
+      {"avx_vnni", "AVX2 with FMA, F16C and 256-bit VNNI (AVX-VNNI, or AVX-512 VNNI with VL)", avx_vnni_runs_here,
+       avx_vnni_kernels()},
       {"avx2", "AVX2 with FMA and F16C", avx2_runs_here, &avx2::kernels},
 #endif
       {"portable", "nothing beyond the baseline", portable_runs_here, &portable::kernels},

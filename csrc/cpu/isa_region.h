@@ -12,11 +12,15 @@
 // they need first.
 //
 // A kernel file defines one of DYQ_CPU_ISA_AVX512_AMX / DYQ_CPU_ISA_AVX512_BF16 / DYQ_CPU_ISA_AVX512 /
-// DYQ_CPU_ISA_AVX2 before its first include; without any it is the portable path (plain C++ and Eigen at
-// the compiler's baseline: SSE2 on x86-64, NEON on aarch64). The AMX and BF16 paths are the AVX-512 one
-// with more instructions: they define DYQ_CPU_ISA_AVX512 too (the family the shared x86 helpers test) and
-// DYQ_AVX512_HAS_BF16 / DYQ_AVX512_HAS_AMX for the kernels that use them. DYQ_ISA_NAME is the path's
-// DYQ_CPU_ISA value.
+// DYQ_CPU_ISA_AVX_VNNI / DYQ_CPU_ISA_AVX_VNNI_EVEX / DYQ_CPU_ISA_AVX2 before its first include; without any
+// it is the portable path (plain C++ and Eigen at the compiler's baseline: SSE2 on x86-64, NEON on aarch64).
+// The AMX and BF16 paths are the AVX-512 one with more instructions: they define DYQ_CPU_ISA_AVX512 too (the
+// family the shared x86 helpers test) and DYQ_AVX512_HAS_BF16 / DYQ_AVX512_HAS_AMX for the kernels that use
+// them. Likewise the AVX-VNNI path is the AVX2 one with 256-bit VNNI dot products (DYQ_CPU_ISA_AVX2 and
+// DYQ_AVX2_HAS_VNNI), compiled twice: VEX-encoded for the CPUs with AVX-VNNI (Alder Lake and later, the
+// Gracemont cores of the N100), and the same source EVEX-encoded (DYQ_AVX2_VNNI_EVEX) for CPUs with AVX-512
+// VNNI, which lack the VEX form until Sapphire Rapids and Zen 5, so that they run and test this path too.
+// DYQ_ISA_NAME is the path's DYQ_CPU_ISA value (both encodings are "avx_vnni").
 #if defined(DYQ_CPU_ISA_AVX512_AMX)
 #define DYQ_CPU_ISA_AVX512 1
 #define DYQ_AVX512_HAS_BF16 1
@@ -35,6 +39,19 @@
 #define DYQ_ISA_NAMESPACE avx512
 #define DYQ_ISA_NAME "avx512"
 #define DYQ_ISA_TARGET "avx512f,avx512bw,avx512dq,avx512vl,avx512vnni,avx512vbmi,avx2,fma,f16c"
+#elif defined(DYQ_CPU_ISA_AVX_VNNI)
+#define DYQ_CPU_ISA_AVX2 1
+#define DYQ_AVX2_HAS_VNNI 1
+#define DYQ_ISA_NAMESPACE avx_vnni
+#define DYQ_ISA_NAME "avx_vnni"
+#define DYQ_ISA_TARGET "avx2,fma,f16c,avxvnni"
+#elif defined(DYQ_CPU_ISA_AVX_VNNI_EVEX)
+#define DYQ_CPU_ISA_AVX2 1
+#define DYQ_AVX2_HAS_VNNI 1
+#define DYQ_AVX2_VNNI_EVEX 1
+#define DYQ_ISA_NAMESPACE avx_vnni_evex
+#define DYQ_ISA_NAME "avx_vnni"
+#define DYQ_ISA_TARGET "avx2,fma,f16c,avx512f,avx512vl,avx512vnni,prefer-vector-width=256"
 #elif defined(DYQ_CPU_ISA_AVX2)
 #define DYQ_ISA_NAMESPACE avx2
 #define DYQ_ISA_NAME "avx2"

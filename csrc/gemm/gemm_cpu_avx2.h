@@ -1,4 +1,11 @@
-// The AVX2 GEMM behind dyq::cpu::gemm on x86-64 CPUs without AVX-512 VNNI (docs/numerics.md, section 3).
+// The AVX2 GEMM behind dyq::cpu::gemm on x86-64 CPUs without AVX-512 VNNI (docs/numerics.md, section 3),
+// compiled twice: as the avx2 path, and as the avx_vnni one (DYQ_AVX2_HAS_VNNI, cpu/isa_region.h), where
+// one vpdpbusd adds the products of 4 u8 and 4 s8 bytes into each int32 lane. That replaces vpmaddubsw's
+// 16-bit pairs, their additions and the vpmaddwd that widens them: the row kernels spend two instructions
+// on an activation row and a 32-byte load where they spent five (four where they spent seven at act_bits
+// 8), and the panels one per quad of columns and vector where they spent about two. Both form the same
+// exact integer sums and share the rest of the arithmetic, so the two paths' outputs agree bit for bit
+// (tests/cpp/test_gemm.cpp).
 //
 // Packed weights are rows of K / 2 bytes, byte j holding column 2j in its low nibble and column 2j + 1 in
 // its high one, each a two's-complement code q_w in [-8, 7]. Two kinds of kernel read them:
@@ -20,7 +27,8 @@
 //   z_x * sum(u), one more vpmaddubsw with z_x in every byte, is subtracted in 16 bits (each term at most
 //   2 * 2 * 255 * 15 = 15300, so nothing saturates). The offset comes back as -8 * sum(q_x - z_x) over
 //   the lane's columns, an integer of the activations alone that starts the lane's sum, so that the
-//   lane holds exactly P of docs/numerics.md; it is converted to fp32 and multiplied by s_x * s_w.
+//   lane holds exactly P of docs/numerics.md; it is converted to fp32 and multiplied by s_x * s_w. With
+//   VNNI the same operands go through vpdpbusd, the offsets as its starting sums, as on the AVX-512 path.
 // - act_bits 16: 8 packed bytes (16 columns) are widened to int32 lanes and turned into exact fp32
 //   codes without a conversion: XOR-ing 0x4B000088 into a lane sets the exponent of 2^23 above the two
 //   offset codes u, so masking with 0x4B00000F gives the float 2^23 + u_even and with 0x4B0000F0 the
@@ -36,7 +44,8 @@
 //   vector), and 4 rows x 16 outputs of int32 accumulators. The u8 codes q_x of 4 columns are broadcast
 //   and vpmaddubsw'd with the s8 codes; four of those added in 16 bits stay below 4 * 2 * 255 * 8 <
 //   2^15, then one vpmaddwd with ones adds them into the accumulators. Per group P = sum q_x q_w -
-//   z_x sum q_w, the second term in fp32 (integers below 2^24: exact), scaled by s_x * s_w.
+//   z_x sum q_w, the second term in fp32 (integers below 2^24: exact), scaled by s_x * s_w. With VNNI one
+//   vpdpbusd per quad and vector adds the products into the accumulators directly.
 // - act_bits 16: fp32 codes, one column of 16 outputs per two vectors, and 6 rows x 16 outputs of FMA
 //   accumulators, each group's partial sum scaled by s_w once.
 //
@@ -62,7 +71,7 @@
 #include "parallel/parallel.h"
 
 DYQ_ISA_BEGIN
-namespace dyq::cpu::avx2 {
+namespace dyq::cpu::DYQ_ISA_NAMESPACE {
 
 constexpr int64_t kBlockColumns = 64;     // columns in 32 bytes of packed weights
 constexpr int64_t kChunkColumns = 16;     // act_bits 16: columns in 8 bytes of packed weights
@@ -76,6 +85,18 @@ constexpr int kMaxTileRows = 4;           // activation rows that share one pass
 // measured.
 constexpr int64_t kPrefetchBytes = 8192;
 constexpr int64_t kSweepAheadBytes = 16384;
+
+#if defined(DYQ_AVX2_HAS_VNNI)
+// acc + the sum of the products of 4 u8 bytes of u and 4 s8 bytes of s in each int32 lane (vpdpbusd), in
+// the encoding of the path's region (cpu/isa_region.h).
+inline __m256i dot_u8s8(__m256i acc, __m256i u, __m256i s) {
+#if defined(DYQ_AVX2_VNNI_EVEX)
+  return _mm256_dpbusd_epi32(acc, u, s);
+#else
+  return _mm256_dpbusd_avx_epi32(acc, u, s);
+#endif
+}
+#endif
 
 // ---- row kernels, act_bits 2/4/8 --------------------------------------------------------------------
 
@@ -143,11 +164,23 @@ inline void accumulate_block(__m256i packed, __m256 weight_scales, const DecodeB
   const __m256i even = _mm256_and_si256(u, low_nibbles);
   const __m256i odd = _mm256_and_si256(_mm256_srli_epi16(u, 4), low_nibbles);
   [[maybe_unused]] const __m256i both = kWideCodes ? _mm256_add_epi8(even, odd) : even;  // u sums: below 31
-  const __m256i ones = _mm256_set1_epi16(1);
+  [[maybe_unused]] const __m256i ones = _mm256_set1_epi16(1);
   for (int r = 0; r < kRows; ++r) {
     const DecodeBlock& block = rows[r][t];
     const __m256i a_even = _mm256_load_si256(reinterpret_cast<const __m256i*>(block.even_codes));
     const __m256i a_odd = _mm256_load_si256(reinterpret_cast<const __m256i*>(block.odd_codes));
+    const __m256i offsets = _mm256_load_si256(reinterpret_cast<const __m256i*>(block.offsets));
+#if defined(DYQ_AVX2_HAS_VNNI)
+    __m256i dot;  // P of each lane, as on the AVX-512 path
+    if constexpr (kWideCodes) {
+      dot = dot_u8s8(dot_u8s8(offsets, a_even, even), a_odd, odd);
+      dot = _mm256_sub_epi32(
+          dot, dot_u8s8(_mm256_setzero_si256(), _mm256_load_si256(reinterpret_cast<const __m256i*>(block.zero_bytes)),
+                        both));
+    } else {
+      dot = dot_u8s8(dot_u8s8(offsets, even, a_even), odd, a_odd);
+    }
+#else
     __m256i pairs;  // exact sums of 4 columns
     if constexpr (kWideCodes) {
       pairs = _mm256_add_epi16(_mm256_maddubs_epi16(a_even, even), _mm256_maddubs_epi16(a_odd, odd));
@@ -156,8 +189,8 @@ inline void accumulate_block(__m256i packed, __m256 weight_scales, const DecodeB
     } else {
       pairs = _mm256_add_epi16(_mm256_maddubs_epi16(even, a_even), _mm256_maddubs_epi16(odd, a_odd));
     }
-    const __m256i dot = _mm256_add_epi32(_mm256_madd_epi16(pairs, ones),
-                                         _mm256_load_si256(reinterpret_cast<const __m256i*>(block.offsets)));
+    const __m256i dot = _mm256_add_epi32(_mm256_madd_epi16(pairs, ones), offsets);
+#endif
     acc[r] = _mm256_fmadd_ps(_mm256_cvtepi32_ps(dot), _mm256_mul_ps(weight_scales, _mm256_load_ps(block.scale_lanes)),
                              acc[r]);
   }
@@ -459,7 +492,7 @@ inline __m256i broadcast_quad(const uint8_t* codes) {
 template <int kRows, typename Element>
 unsigned int_panel_kernel(const IntWeightPanel& panel, const IntPanelRow* rows, int64_t depth, int group_size,
                           const PanelSums<Element, kPanelOutputs>& sums) {
-  const __m256i ones = _mm256_set1_epi16(1);
+  [[maybe_unused]] const __m256i ones = _mm256_set1_epi16(1);
   const int64_t quads_per_group = group_size / 4;
   const auto* codes = reinterpret_cast<const __m256i*>(panel.codes.data());
   const int64_t groups = depth / group_size;
@@ -467,6 +500,25 @@ unsigned int_panel_kernel(const IntWeightPanel& panel, const IntPanelRow* rows, 
   for (int64_t g = 0; g < groups; ++g) {
     __m256i acc[kRows][2];
     for (int r = 0; r < kRows; ++r) acc[r][0] = acc[r][1] = _mm256_setzero_si256();
+#if defined(DYQ_AVX2_HAS_VNNI)
+    // Four quads a step, each quad's two vectors of codes against every row's broadcast q_x, straight into
+    // the accumulators (exact: int32 sums). One quad a step, GCC copied every accumulator to another
+    // register and back each step (W4A4 4096 x 4096 at M = 256, one thread on the AMD EPYC: 33.3 ms against
+    // 27.2). Six rows a tile rather than four were no faster there.
+    for (int64_t q = g * quads_per_group; q < (g + 1) * quads_per_group; q += 4) {
+#pragma GCC unroll 4
+      for (int j = 0; j < 4; ++j) {
+        const __m256i low = _mm256_load_si256(codes + 2 * (q + j));
+        const __m256i high = _mm256_load_si256(codes + 2 * (q + j) + 1);
+#pragma GCC unroll 4
+        for (int r = 0; r < kRows; ++r) {
+          const __m256i x = broadcast_quad(rows[r].codes + 4 * (q + j));
+          acc[r][0] = dot_u8s8(acc[r][0], x, low);
+          acc[r][1] = dot_u8s8(acc[r][1], x, high);
+        }
+      }
+    }
+#else
     for (int64_t q = g * quads_per_group; q < (g + 1) * quads_per_group; q += 4) {
       const __m256i* w = codes + 2 * q;  // w[2 j + h]: quad q + j, outputs 8h..8h+7
       for (int r = 0; r < kRows; ++r) {
@@ -482,6 +534,7 @@ unsigned int_panel_kernel(const IntWeightPanel& panel, const IntPanelRow* rows, 
         }
       }
     }
+#endif
     // The totals stay in memory: registers for them would make the compiler spill the inner loop. Unrolled,
     // so that the accumulators stay registers.
     const bool add_totals = !(sums.first_slice && g == 0), to_output = sums.out != nullptr && g + 1 == groups;
@@ -695,9 +748,15 @@ bool gemm_typed(const Element* x, const uint8_t* qweight, const float* scales, c
 
 inline const char* gemm_kernel(int64_t m, int64_t, int, int act_bits) {
   const bool panel = use_panels(m, act_bits);
-  if (act_bits == kFallbackBits) return panel ? "avx2/panel-fp32" : "avx2/rows-fp32";
-  return panel ? "avx2/panel-maddubs" : "avx2/rows-maddubs";
+  if (act_bits == kFallbackBits) return panel ? DYQ_ISA_NAME "/panel-fp32" : DYQ_ISA_NAME "/rows-fp32";
+#if defined(DYQ_AVX2_VNNI_EVEX)  // the benchmarks' JSON says which encoding ran
+  return panel ? DYQ_ISA_NAME "/panel-vnni-evex" : DYQ_ISA_NAME "/rows-vnni-evex";
+#elif defined(DYQ_AVX2_HAS_VNNI)
+  return panel ? DYQ_ISA_NAME "/panel-vnni" : DYQ_ISA_NAME "/rows-vnni";
+#else
+  return panel ? DYQ_ISA_NAME "/panel-maddubs" : DYQ_ISA_NAME "/rows-maddubs";
+#endif
 }
 
-}  // namespace dyq::cpu::avx2
+}  // namespace dyq::cpu::DYQ_ISA_NAMESPACE
 DYQ_ISA_END

@@ -10,6 +10,7 @@
 #include <string>
 #include <thread>
 #include <tuple>
+#include <utility>
 #include <random>
 #include <vector>
 
@@ -376,6 +377,37 @@ TEST_P(GemmPanelThresholdTest, MatchesNaiveReferenceOnEitherSide) {
 }
 
 INSTANTIATE_TEST_SUITE_P(WidthsAndGroups, GemmPanelThresholdTest,
+                         ::testing::Combine(::testing::Values(2, 4, 8, 16), ::testing::Values(32, 64, 128)));
+
+// The AVX-VNNI path is the AVX2 one with its integer sums on vpdpbusd: both form every lane's P exactly and
+// then run the same fp32 operations on it, so their outputs agree bit for bit (a check of the VNNI kernels
+// beyond the reference's bound). Every row count of the row kernels and the panels' tiles, ragged N and K.
+class GemmAvxVnniTest : public ::testing::TestWithParam<std::tuple<int, int>> {};
+
+TEST_P(GemmAvxVnniTest, AgreesWithTheAvx2PathBitForBit) {
+  const auto [act_bits, group_size] = GetParam();
+  const Implementation *vnni = nullptr, *avx2 = nullptr;
+  for (const auto& impl : implementations()) {
+    if (impl.name == "avx_vnni") vnni = &impl;
+    if (impl.name == "avx2") avx2 = &impl;
+  }
+  if (vnni == nullptr || avx2 == nullptr) GTEST_SKIP() << "this CPU runs no AVX-VNNI path";
+  uint32_t seed = 5000u + 10 * act_bits + group_size;
+  for (const int64_t m : {1, 2, 3, 4, 5, 6, 7, 12, 13, 19}) {
+    const Problem p{m, 16 * 4 + 3, 5 * group_size + 66, group_size, act_bits, m % 2 == 0, seed++};
+    const Inputs in = make_inputs(p, [](float v) { return v; });
+    std::vector<float> from_vnni(p.m * p.n), from_avx2(p.m * p.n);
+    for (auto [impl, out] : {std::pair{vnni, &from_vnni}, std::pair{avx2, &from_avx2}}) {
+      impl->run(in.x.data(), ScalarType::kFloat32, in.qweight.data(), in.weight.scales.data(),
+                p.with_bias ? in.bias.data() : nullptr, p.m, p.n, p.k, p.group_size, p.act_bits, out->data());
+    }
+    ASSERT_EQ(0, std::memcmp(from_vnni.data(), from_avx2.data(), from_vnni.size() * sizeof(float)))
+        << "m " << m << ": " << vnni->kernel(m, p.k, group_size, act_bits) << " against "
+        << avx2->kernel(m, p.k, group_size, act_bits);
+  }
+}
+
+INSTANTIATE_TEST_SUITE_P(WidthsAndGroups, GemmAvxVnniTest,
                          ::testing::Combine(::testing::Values(2, 4, 8, 16), ::testing::Values(32, 64, 128)));
 
 // Runs every chunk of a parallel_for on a thread of its own, in chunks of the grain: far more, and

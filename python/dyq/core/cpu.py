@@ -1,7 +1,7 @@
 """Which path the CPU kernels run (``csrc/cpu/cpu_isa.h``).
 
 Every path is compiled into ``dyq._C``; the best one this CPU can execute is chosen on first use, unless
-``DYQ_CPU_ISA=amx|avx512_bf16|avx512|avx2|portable`` forces one (set it before the first dyq op runs).
+``DYQ_CPU_ISA=amx|avx512_bf16|avx512|avx_vnni|avx2|portable`` forces one (set it before the first dyq op runs).
 """
 from __future__ import annotations
 
