@@ -41,7 +41,8 @@ float reduce_lanes(__m256 v) {
 // call's first (further ahead still paid on one thread; each path says how far). Past the end of the weights
 // it touches nothing (a prefetch does not fault).
 template <_mm_hint kHint, int64_t kMinAheadBytes = 0>
-void prefetch_next_rows(const uint8_t* weight_rows, int64_t rows_bytes, int64_t read_bytes) {
+[[gnu::always_inline]] inline void prefetch_next_rows(const uint8_t* weight_rows, int64_t rows_bytes,
+                                                     int64_t read_bytes) {
   const int64_t ahead = rows_bytes > kMinAheadBytes ? rows_bytes : kMinAheadBytes;
   _mm_prefetch(reinterpret_cast<const char*>(reinterpret_cast<uintptr_t>(weight_rows) + ahead + read_bytes), kHint);
 }
