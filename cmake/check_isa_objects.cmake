@@ -1,7 +1,8 @@
 # ctest script: disassembles each CPU path's object (csrc/cpu/kernels_<isa>.cpp) and fails when a path that
 # runs on CPUs without AVX-512 (portable, avx2, avx_vnni) uses a zmm register, when the AVX-512 ones use none
-# (the check would be vacuous), or when the AVX-VNNI path's dot products are not VEX-encoded vpdpbusd (its
-# EVEX twin, which runs only on CPUs with AVX-512 VNNI, may use zmm for copies but must use EVEX vpdpbusd).
+# (the check would be vacuous), when the AVX-VNNI path's dot products are not VEX-encoded vpdpbusd (its
+# EVEX twin, which runs only on CPUs with AVX-512 VNNI, may use zmm for copies but must use EVEX vpdpbusd),
+# or when an x86 decode row kernel has no prefetch.
 # Called with -DOBJDUMP=<objdump> -DOBJECTS=<the objects of dyq_cpu_isa_kernels, ;-separated>.
 foreach(_object IN LISTS OBJECTS)
   get_filename_component(_name ${_object} NAME)
@@ -29,5 +30,26 @@ foreach(_object IN LISTS OBJECTS)
   if(_name MATCHES "kernels_avx_vnni.cpp" AND (_vex_count EQUAL 0 OR NOT _vex_count EQUAL _dot_count))
     message(FATAL_ERROR "${_name}: ${_dot_count} vpdpbusd, ${_vex_count} of them VEX-encoded (expected all)")
   endif()
-  message(STATUS "${_name}: ${_count} zmm register uses, ${_dot_count} vpdpbusd (${_vex_count} VEX-encoded)")
+  # Every integer and bf16 decode kernel prefetches the weights it streams: GCC has deleted prefetches
+  # before (a helper left out of line looked free of side effects), which halved the cold decode silently.
+  set(_row_kernels 0)
+  if(NOT _name MATCHES "kernels_portable")
+    string(REPLACE "[" "(" _asm "${_asm}")  # list-safe: objdump's output has no semicolons, brackets matter
+    string(REPLACE "]" ")" _asm "${_asm}")
+    string(REPLACE "\n\n" ";" _functions "${_asm}")
+    foreach(_function IN LISTS _functions)
+      if(_function MATCHES "^[0-9a-f]+ <([^>]*(decode_int_kernel|bf16_decode_kernel)[^>]*)>:")
+        set(_symbol ${CMAKE_MATCH_1})
+        math(EXPR _row_kernels "${_row_kernels} + 1")
+        if(NOT _function MATCHES "prefetcht")
+          message(FATAL_ERROR "${_name}: ${_symbol} has no prefetch")
+        endif()
+      endif()
+    endforeach()
+    if(_row_kernels EQUAL 0)
+      message(FATAL_ERROR "${_name}: no decode row kernel found (the prefetch check would be vacuous)")
+    endif()
+  endif()
+  message(STATUS "${_name}: ${_count} zmm register uses, ${_dot_count} vpdpbusd (${_vex_count} VEX-encoded), "
+                 "${_row_kernels} decode row kernels, each with a prefetch")
 endforeach()
