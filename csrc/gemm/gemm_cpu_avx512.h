@@ -121,23 +121,38 @@ inline void split_weight_nibbles(__m512i packed, __m512i& even, __m512i& odd) {
 
 // 128 columns of one activation row for the integer row kernel.
 struct alignas(64) DecodeBlock {
-  uint8_t even_codes[64];   // columns 0, 2, ..., 126: a = q_x - z_x (act_bits 2/4, as s8) or q_x (8)
-  uint8_t odd_codes[64];    // columns 1, 3, ..., 127
-  uint32_t zero_bytes[16];  // act_bits 8: z_x of the lane's group in each byte (0 past k)
-  int32_t offsets[16];      // -8 * sum of (q_x - z_x) over the lane's columns (0 past k)
+  uint8_t even_codes[64];  // columns 0, 2, ..., 126: a = q_x - z_x (act_bits 2/4, as s8) or q_x (8)
+  uint8_t odd_codes[64];   // columns 1, 3, ..., 127
+  int32_t offsets[16];     // -8 * sum of (q_x - z_x) over the lane's columns (0 past k)
+};
+
+// act_bits 8's form: z_x of each lane's group in each of its bytes (0 past k), for G below 128. Apart from
+// the blocks, and for G = 128 one word per group instead, so that a row's blocks take 3 cache lines per
+// 128 columns rather than 4: at K = 11008 and above a row's blocks no longer fit the L1 beside the weights
+// streaming through it.
+struct alignas(64) ZeroLanes {
+  uint32_t bytes[16];
 };
 
 // An activation row as the integer row kernel reads it.
 struct DecodeRow {
   const DecodeBlock* blocks;
-  const float* scales;  // s_x per group (NaN for a non-finite group)
+  const float* scales;          // s_x per group (NaN for a non-finite group)
+  const ZeroLanes* zero_lanes;  // per block, G < 128 (act_bits 8's form)
+  const uint32_t* zero_words;   // per group, z_x in each byte (act_bits 8's form)
 };
 
 struct DecodeActivations {
-  AlignedVector<DecodeBlock> blocks;  // [m][ceil(k / 128)]
-  std::vector<float> scales;          // [m][groups]
+  AlignedVector<DecodeBlock> blocks;    // [m][ceil(k / 128)]
+  std::vector<float> scales;            // [m][groups]
+  AlignedVector<ZeroLanes> zero_lanes;  // [m][ceil(k / 128)], act_bits 8's form with G < 128
+  std::vector<uint32_t> zero_words;     // [m][groups], act_bits 8's form
   int64_t blocks_per_row = 0, groups = 0;
-  DecodeRow row(int64_t r) const { return {blocks.data() + r * blocks_per_row, scales.data() + r * groups}; }
+  DecodeRow row(int64_t r) const {
+    return {blocks.data() + r * blocks_per_row, scales.data() + r * groups,
+            zero_lanes.empty() ? nullptr : zero_lanes.data() + r * blocks_per_row,
+            zero_words.empty() ? nullptr : zero_words.data() + r * groups};
+  }
 };
 
 // `centred`: the codes stored as a = q_x - z_x, for decode_int_kernel<..., kWideCodes = false>; possible
@@ -150,6 +165,10 @@ DecodeActivations decode_activations(const Element* x, int64_t m, int64_t k, int
   out.groups = group_count(k, group_size);
   out.blocks.resize(m * out.blocks_per_row);
   out.scales.resize(m * out.groups);
+  if (!centred) {
+    out.zero_words.resize(m * out.groups);
+    if (group_size < kBlockColumns) out.zero_lanes.resize(m * out.blocks_per_row);
+  }
   const int group_shift = __builtin_ctz(group_size);  // group sizes are powers of two, at least 8 (a lane)
   std::vector<float> row(k);
   std::vector<uint8_t> codes(out.blocks_per_row * kBlockColumns, 0);  // zero past k
@@ -158,7 +177,10 @@ DecodeActivations decode_activations(const Element* x, int64_t m, int64_t k, int
   const __m512i odd = _mm512_add_epi8(even, _mm512_set1_epi8(1));
   for (int64_t r = 0; r < m; ++r) {
     quantize_activation_row(x + r * k, k, group_size, act_bits, row.data(), codes.data(), params.data());
-    for (int64_t g = 0; g < out.groups; ++g) out.scales[r * out.groups + g] = params[g].scale;
+    for (int64_t g = 0; g < out.groups; ++g) {
+      out.scales[r * out.groups + g] = params[g].scale;
+      if (!centred) out.zero_words[r * out.groups + g] = static_cast<uint32_t>(params[g].zero) * 0x01010101u;
+    }
     for (int64_t t = 0; t < out.blocks_per_row; ++t) {
       DecodeBlock& block = out.blocks[r * out.blocks_per_row + t];
       // Per lane of 8 columns: its group's z_x, and how many of its columns lie before k.
@@ -173,7 +195,9 @@ DecodeActivations decode_activations(const Element* x, int64_t m, int64_t k, int
         const uint64_t lane_bytes =
             centred ? (static_cast<uint64_t>(lane_zero[lane]) * 0x0101010101010101u) & columns_mask : 0;
         std::memcpy(centring + 8 * lane, &lane_bytes, 8);
-        block.zero_bytes[lane] = centred ? 0u : static_cast<uint32_t>(lane_zero[lane]) * 0x01010101u;
+        if (!out.zero_lanes.empty()) {
+          out.zero_lanes[r * out.blocks_per_row + t].bytes[lane] = static_cast<uint32_t>(lane_zero[lane]) * 0x01010101u;
+        }
       }
       const __m512i first = _mm512_loadu_si512(codes.data() + t * kBlockColumns);
       const __m512i second = _mm512_loadu_si512(codes.data() + t * kBlockColumns + 64);
@@ -392,8 +416,11 @@ void decode_int_kernel(const uint8_t* weight_rows, const float* scales_rows, int
         __m512i dot;  // P of each lane
         if constexpr (kWideCodes) {
           dot = _mm512_dpbusd_epi32(_mm512_dpbusd_epi32(offsets, a_even, even[c]), a_odd, odd[c]);
-          dot = _mm512_sub_epi32(
-              dot, _mm512_dpbusd_epi32(_mm512_setzero_si512(), _mm512_load_si512(block.zero_bytes), both[c]));
+          // z_x in every byte of every lane: the lanes past k (G = 128) multiply u = 0.
+          const __m512i zero_bytes = decltype(block_is_group)::value
+                                         ? _mm512_set1_epi32(static_cast<int>(rows[r].zero_words[t]))
+                                         : _mm512_load_si512(rows[r].zero_lanes[t].bytes);
+          dot = _mm512_sub_epi32(dot, _mm512_dpbusd_epi32(_mm512_setzero_si512(), zero_bytes, both[c]));
         } else {
           dot = _mm512_dpbusd_epi32(_mm512_dpbusd_epi32(offsets, even[c], a_even), odd[c], a_odd);
         }
