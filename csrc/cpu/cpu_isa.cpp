@@ -82,9 +82,7 @@ bool avx_vnni_runs_here() {
                                                  __builtin_cpu_supports("avx512vnni")));
 }
 
-const CpuKernelSet* avx_vnni_kernels() {
-  return avx2_runs_here() && has_avx_vnni() ? &avx_vnni::kernels : &avx_vnni_evex::kernels;
-}
+const CpuKernelSet* avx_vnni_kernels() { return has_avx_vnni() ? &avx_vnni::kernels : &avx_vnni_evex::kernels; }
 #endif
 
 bool portable_runs_here() { return true; }
