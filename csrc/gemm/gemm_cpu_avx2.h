@@ -491,7 +491,7 @@ inline __m256i broadcast_quad(const uint8_t* codes) {
 // (PanelSums says where it goes). Returns the output lanes that came out inf or NaN.
 template <int kRows, typename Element>
 unsigned int_panel_kernel(const IntWeightPanel& panel, const IntPanelRow* rows, int64_t depth, int group_size,
-                          const PanelSums<Element, kPanelOutputs>& sums) {
+                          PanelSums<Element, kPanelOutputs> sums) {
   [[maybe_unused]] const __m256i ones = _mm256_set1_epi16(1);
   const int64_t quads_per_group = group_size / 4;
   const auto* codes = reinterpret_cast<const __m256i*>(panel.codes.data());
@@ -538,20 +538,22 @@ unsigned int_panel_kernel(const IntWeightPanel& panel, const IntPanelRow* rows, 
     // The totals stay in memory: registers for them would make the compiler spill the inner loop. Unrolled,
     // so that the accumulators stay registers.
     const bool add_totals = !(sums.first_slice && g == 0), to_output = sums.out != nullptr && g + 1 == groups;
+    sums.for_group(add_totals, to_output, [&](auto add, auto store_output) __attribute__((always_inline)) {
 #pragma GCC unroll 2
-    for (int h = 0; h < 2; ++h) {
-      const __m256 weight_scales = _mm256_loadu_ps(&panel.scales[g * kPanelOutputs + 8 * h]);
-      const __m256 weight_sums = _mm256_loadu_ps(&panel.sums[g * kPanelOutputs + 8 * h]);
+      for (int h = 0; h < 2; ++h) {
+        const __m256 weight_scales = _mm256_loadu_ps(&panel.scales[g * kPanelOutputs + 8 * h]);
+        const __m256 weight_sums = _mm256_loadu_ps(&panel.sums[g * kPanelOutputs + 8 * h]);
 #pragma GCC unroll 4
-      for (int r = 0; r < kRows; ++r) {
-        // P = sum q_x q_w - z_x sum q_w, exact in fp32 (integers below 2^24).
-        const __m256 partial =
-            _mm256_fnmadd_ps(weight_sums, _mm256_broadcast_ss(rows[r].zeros + g), _mm256_cvtepi32_ps(acc[r][h]));
-        nonfinite |= sums.finish(
-            r, 8 * h, _mm256_mul_ps(partial, _mm256_mul_ps(weight_scales, _mm256_broadcast_ss(rows[r].scales + g))),
-            add_totals, to_output);
+        for (int r = 0; r < kRows; ++r) {
+          // P = sum q_x q_w - z_x sum q_w, exact in fp32 (integers below 2^24).
+          const __m256 partial =
+              _mm256_fnmadd_ps(weight_sums, _mm256_broadcast_ss(rows[r].zeros + g), _mm256_cvtepi32_ps(acc[r][h]));
+          nonfinite |= sums.finish(
+              r, 8 * h, _mm256_mul_ps(partial, _mm256_mul_ps(weight_scales, _mm256_broadcast_ss(rows[r].scales + g))),
+              add, store_output);
+        }
       }
-    }
+    });
   }
   return nonfinite;
 }
@@ -566,7 +568,7 @@ struct IntPanel {
   }
   template <int kRows, typename Element>
   static unsigned kernel(const WeightPanel& panel, const Row* rows, int64_t depth, int group_size,
-                         const PanelSums<Element, kPanelOutputs>& sums) {
+                         PanelSums<Element, kPanelOutputs> sums) {
     return int_panel_kernel<kRows>(panel, rows, depth, group_size, sums);
   }
 };
@@ -606,7 +608,7 @@ struct Fp32WeightPanel {
 
 template <int kRows, typename Element>
 unsigned fp32_panel_kernel(const Fp32WeightPanel& panel, const float* const* rows, int64_t depth, int group_size,
-                           const PanelSums<Element, kPanelOutputs>& sums) {
+                           PanelSums<Element, kPanelOutputs> sums) {
   const auto* codes = reinterpret_cast<const float*>(panel.codes.data());
   const int64_t groups = depth / group_size;
   unsigned nonfinite = 0;
@@ -622,14 +624,16 @@ unsigned fp32_panel_kernel(const Fp32WeightPanel& panel, const float* const* row
       }
     }
     const bool add_totals = !(sums.first_slice && g == 0), to_output = sums.out != nullptr && g + 1 == groups;
+    sums.for_group(add_totals, to_output, [&](auto add, auto store_output) __attribute__((always_inline)) {
 #pragma GCC unroll 2
-    for (int h = 0; h < 2; ++h) {
-      const __m256 weight_scales = _mm256_loadu_ps(&panel.scales[g * kPanelOutputs + 8 * h]);
+      for (int h = 0; h < 2; ++h) {
+        const __m256 weight_scales = _mm256_loadu_ps(&panel.scales[g * kPanelOutputs + 8 * h]);
 #pragma GCC unroll 6
-      for (int r = 0; r < kRows; ++r) {
-        nonfinite |= sums.finish(r, 8 * h, _mm256_mul_ps(acc[r][h], weight_scales), add_totals, to_output);
+        for (int r = 0; r < kRows; ++r) {
+          nonfinite |= sums.finish(r, 8 * h, _mm256_mul_ps(acc[r][h], weight_scales), add, store_output);
+        }
       }
-    }
+    });
   }
   return nonfinite;
 }
@@ -642,7 +646,7 @@ struct Fp32Panel {
   static Row advance(Row row, int64_t column, int64_t) { return row + column; }
   template <int kRows, typename Element>
   static unsigned kernel(const WeightPanel& panel, const Row* rows, int64_t depth, int group_size,
-                         const PanelSums<Element, kPanelOutputs>& sums) {
+                         PanelSums<Element, kPanelOutputs> sums) {
     return fp32_panel_kernel<kRows>(panel, rows, depth, group_size, sums);
   }
 };

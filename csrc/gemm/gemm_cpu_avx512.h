@@ -709,8 +709,6 @@ constexpr int64_t kPanelColumns = 32;  // two halves of 16 lanes
 constexpr int kPanelTileRows = 8;       // 16 accumulators, 2 weight vectors, the broadcasts
 constexpr int64_t kPanelDepth = 256;    // a multiple of 128, hence of every group size
 constexpr int64_t kQuadColumns = 8;     // columns in one dword of packed weights
-constexpr int64_t kPanelQuads = kPanelDepth / kQuadColumns;
-constexpr int64_t kPanelGroups = kPanelDepth / 32;  // at the smallest group size
 
 // Quads (8 columns) that `columns` columns span, the last one partial where 8 does not divide them.
 inline int64_t quad_count(int64_t columns) { return (columns + kQuadColumns - 1) / kQuadColumns; }
@@ -779,6 +777,7 @@ struct TileScratch {
 };
 
 struct VnniPanel {
+  static constexpr int64_t kDepth = kPanelDepth;  // columns per packed slice
   static constexpr int kSteps = 2;
   static constexpr bool kWeightSums = true;
   static constexpr bool kScaledSteps = false;  // steps of the codes (scales in the epilogue)
@@ -818,6 +817,7 @@ struct VnniPanel {
 
 #if defined(DYQ_AVX512_HAS_BF16)
 struct Bf16Panel {
+  static constexpr int64_t kDepth = kPanelDepth;  // columns per packed slice
   static constexpr int kSteps = 4;
   static constexpr bool kWeightSums = false;
   static constexpr bool kScaledSteps = false;  // steps of the codes (scales in the epilogue)
@@ -854,9 +854,38 @@ struct Bf16Panel {
     return _mm512_mul_ps(acc, weight_scales);
   }
 };
+
+// Bf16Panel's layout, of the dequantized weights w = bf16(q_w s_w) (the product in fp32, rounded to nearest
+// even by vcvtne2ps2bf16, which reads a product below fp32's normal range as 0): no scale is left to apply
+// per group, so the accumulators run across a slice of kDepthColumns columns (docs/numerics.md, section
+// 3). The AMX-BF16 tiles read it at the panels' usual depth, the vdpbf16ps panel of many rows in deeper
+// slices (use_dequantized_panel).
+template <int64_t kDepthColumns>
+struct DequantizedBf16Panel : Bf16Panel {
+  static constexpr int64_t kDepth = kDepthColumns;
+  static constexpr bool kScaledSteps = true;
+  static const char* name() { return "bf16-dequantized"; }
+  // `scales`: s_w of the 16 rows, for the quad's group. vpermps reads only an index's low 4 bits, so one
+  // shift puts a nibble where it looks up its code.
+  static void steps(__m512i quad, __m512 scales, __m512i* out) {
+    alignas(64) static constexpr float kCodes[16] = {0, 1, 2, 3, 4, 5, 6, 7, -8, -7, -6, -5, -4, -3, -2, -1};
+    const __m512 codes = _mm512_load_ps(kCodes);
+    // Dword i of the result: word i (the even column) and word 16 + i (the odd one) of vcvtne2ps2bf16's.
+    const __m512i interleave = _mm512_set_epi16(31, 15, 30, 14, 29, 13, 28, 12, 27, 11, 26, 10, 25, 9, 24, 8, 23, 7,
+                                                22, 6, 21, 5, 20, 4, 19, 3, 18, 2, 17, 1, 16, 0);
+    for (int b = 0; b < 4; ++b) {
+      const __m512 even = _mm512_mul_ps(_mm512_maskz_permutexvar_ps(kAll16, srli_epi32(quad, 8 * b), codes), scales);
+      const __m512 odd = _mm512_mul_ps(_mm512_maskz_permutexvar_ps(kAll16, srli_epi32(quad, 8 * b + 4), codes), scales);
+      const __m512i words = reinterpret_cast<__m512i>(_mm512_cvtne2ps_pbh(odd, even));
+      out[b] = _mm512_permutexvar_epi16(interleave, words);
+    }
+  }
+  static __m512 scaled(Accumulator acc, const float*, int, __m512, __m512) { return acc; }
+};
 #endif
 
 struct Fp32Panel {
+  static constexpr int64_t kDepth = kPanelDepth;  // columns per packed slice
   static constexpr int kSteps = 8;
   static constexpr bool kWeightSums = false;
   static constexpr bool kScaledSteps = false;  // steps of the codes (scales in the epilogue)
@@ -919,9 +948,11 @@ ActivationTiles activation_tiles(const Element* x, int64_t m, int64_t k, int gro
 
 template <typename Kind>
 struct WeightPanel {
-  AlignedVector<int32_t> steps = AlignedVector<int32_t>(kPanelQuads * Kind::kSteps * kPanelColumns);  // [quad][step][32]
-  AlignedVector<float> scales = AlignedVector<float>(kPanelGroups * kPanelColumns);       // [group][32]
-  AlignedVector<float> weight_sums = AlignedVector<float>(kPanelGroups * kPanelColumns);  // [group][32], VnniPanel
+  static constexpr int64_t kQuads = Kind::kDepth / kQuadColumns;
+  static constexpr int64_t kGroups = Kind::kDepth / 32;  // at the smallest group size
+  AlignedVector<int32_t> steps = AlignedVector<int32_t>(kQuads * Kind::kSteps * kPanelColumns);  // [quad][step][32]
+  AlignedVector<float> scales = AlignedVector<float>(kGroups * kPanelColumns);       // [group][32]
+  AlignedVector<float> weight_sums = AlignedVector<float>(kGroups * kPanelColumns);  // [group][32], VnniPanel
 
   // Columns [col_begin, col_begin + depth) of weight rows [row_begin, row_begin + 32); rows past n and
   // columns past k read as 0.
@@ -1000,11 +1031,12 @@ struct WeightPanel {
 // lanes that came out inf or NaN (none where nothing was stored in the output).
 template <typename Kind, int kRows, typename Element>
 unsigned panel_kernel(const WeightPanel<Kind>& panel, const int32_t* words, const float* params, int64_t depth,
-                       int group_size, const PanelSums<Element, kPanelColumns>& sums) {
+                       int group_size, PanelSums<Element, kPanelColumns> sums) {
   using Accumulator = typename Kind::Accumulator;
   constexpr int kSteps = Kind::kSteps;
   const int64_t quads = quad_count(depth);
-  const int64_t quads_per_group = group_size / kQuadColumns;
+  // Steps that carry their scales leave none to apply per group: one sum spans the depth.
+  const int64_t quads_per_group = Kind::kScaledSteps ? quads : group_size / kQuadColumns;
   unsigned nonfinite = 0;
   for (int64_t first = 0, group = 0; first < quads; first += quads_per_group, ++group) {
     Accumulator acc[kRows][2];
@@ -1030,16 +1062,18 @@ unsigned panel_kernel(const WeightPanel<Kind>& panel, const int32_t* words, cons
     // stored all 16 after every quad: W4A16 on 4096 x 4096 at 256 rows took 49 ms against 41).
     const float* group_params = params + group * 2 * kPanelTileRows;
     const bool add_totals = !(sums.first_slice && first == 0), to_output = sums.out != nullptr && last == quads;
+    sums.for_group(add_totals, to_output, [&](auto add, auto store_output) __attribute__((always_inline)) {
 #pragma GCC unroll 2
-    for (int h = 0; h < 2; ++h) {
-      const __m512 weight_scales = _mm512_load_ps(&panel.scales[group * kPanelColumns + 16 * h]);
-      const __m512 weight_sums = _mm512_load_ps(&panel.weight_sums[group * kPanelColumns + 16 * h]);
+      for (int h = 0; h < 2; ++h) {
+        const __m512 weight_scales = _mm512_load_ps(&panel.scales[group * kPanelColumns + 16 * h]);
+        const __m512 weight_sums = _mm512_load_ps(&panel.weight_sums[group * kPanelColumns + 16 * h]);
 #pragma GCC unroll 8
-      for (int r = 0; r < kRows; ++r) {
-        nonfinite |= sums.finish(r, 16 * h, Kind::scaled(acc[r][h], group_params, r, weight_scales, weight_sums),
-                                 add_totals, to_output);
+        for (int r = 0; r < kRows; ++r) {
+          nonfinite |= sums.finish(r, 16 * h, Kind::scaled(acc[r][h], group_params, r, weight_scales, weight_sums),
+                                   add, store_output);
+        }
       }
-    }
+    });
   }
   return nonfinite;
 }
@@ -1058,8 +1092,8 @@ bool run_panels(const ActivationTiles& tiles, const uint8_t* qweight, const floa
       const int64_t weight_row = p * kPanelColumns;
       const int64_t columns = std::min(kPanelColumns, n - weight_row);
       unsigned nonfinite = 0;
-      for (int64_t col = 0; col < k; col += kPanelDepth) {
-        const int64_t depth = std::min(kPanelDepth, k - col);
+      for (int64_t col = 0; col < k; col += Kind::kDepth) {
+        const int64_t depth = std::min(Kind::kDepth, k - col);
         const bool to_output = columns == kPanelColumns && col + depth == k;
         panel.pack(qweight, scales, n, k, group_size, weight_row, col, depth);
         for (int64_t row = 0; row < m; row += kPanelTileRows) {
@@ -1105,6 +1139,23 @@ inline bool use_panels(int64_t m, int64_t k, int act_bits) {
   return m >= (act_bits == kFallbackBits ? 6 : 5);
 }
 
+#if defined(DYQ_AVX512_HAS_BF16)
+// W4A16 on vdpbf16ps: the panels of many rows multiply by the dequantized weights (DequantizedBf16Panel),
+// whose sums need no scale per group and so run across slices of kDequantizedPanelDepth columns (64 KiB of
+// packed pairs, read from L2), rather than by the exact codes, whose epilogue scales and stores 16
+// accumulators per group. The packing costs about twice as much, paid once per weight, the epilogues once
+// per row tile. On the AMD EPYC (one thread, G = 128, in cache) 4096 x 4096 at 256 rows took 39.2-39.5
+// against 41.1-41.7 ms (torch's bf16 linear 39.7), at 64 rows 10.9 against 11.4, 4096 x 11008 at 16 rows
+// 9.7 against 10.0; on the policy's 256- and 768-column layers the exact panel stayed as fast or faster up
+// to 128 rows, and the dequantized one won from 256 (768 x 256: 0.47 against 0.51 ms). Depths of 512 and
+// 2048 columns were no faster than 1024.
+constexpr int64_t kDequantizedPanelDepth = 1024;
+
+inline bool use_dequantized_panel(int64_t m, int64_t k) {
+  return m >= (k > 2 * kBlockColumns ? 32 : 256);
+}
+#endif
+
 #if defined(DYQ_AVX512_HAS_AMX)
 // From this many activation rows on, the AMX tiles (two A tiles of 16 rows), unpacking the weights with the
 // panel packers above (gemm/gemm_cpu_amx.h).
@@ -1116,29 +1167,8 @@ struct VnniPanelUnsummed : VnniPanel {
   static constexpr bool kWeightSums = false;
 };
 
-// AmxBf16's panel: the bf16 pairs of Bf16Panel's layout, of the dequantized weights q_w s_w (the product in
-// fp32, rounded to nearest even by vcvtne2ps2bf16, which reads a product below fp32's normal range as 0).
-struct DequantizedBf16Panel {
-  static constexpr int kSteps = 4;
-  static constexpr bool kWeightSums = false;
-  static constexpr bool kScaledSteps = true;
-  // `scales`: s_w of the 16 rows, for the quad's group. vpermps reads only an index's low 4 bits, so one
-  // shift puts a nibble where it looks up its code.
-  static void steps(__m512i quad, __m512 scales, __m512i* out) {
-    alignas(64) static constexpr float kCodes[16] = {0, 1, 2, 3, 4, 5, 6, 7, -8, -7, -6, -5, -4, -3, -2, -1};
-    const __m512 codes = _mm512_load_ps(kCodes);
-    // Dword i of the result: word i (the even column) and word 16 + i (the odd one) of vcvtne2ps2bf16's.
-    const __m512i interleave = _mm512_set_epi16(31, 15, 30, 14, 29, 13, 28, 12, 27, 11, 26, 10, 25, 9, 24, 8, 23, 7,
-                                                22, 6, 21, 5, 20, 4, 19, 3, 18, 2, 17, 1, 16, 0);
-    for (int b = 0; b < 4; ++b) {
-      const __m512 even = _mm512_mul_ps(_mm512_maskz_permutexvar_ps(kAll16, srli_epi32(quad, 8 * b), codes), scales);
-      const __m512 odd = _mm512_mul_ps(_mm512_maskz_permutexvar_ps(kAll16, srli_epi32(quad, 8 * b + 4), codes), scales);
-      const __m512i words = reinterpret_cast<__m512i>(_mm512_cvtne2ps_pbh(odd, even));
-      out[b] = _mm512_permutexvar_epi16(interleave, words);
-    }
-  }
-};
-static_assert(VnniPanel::kSteps == AmxInt8::kStepsPerQuad && DequantizedBf16Panel::kSteps == AmxBf16::kStepsPerQuad,
+static_assert(VnniPanel::kSteps == AmxInt8::kStepsPerQuad &&
+                  DequantizedBf16Panel<kAmxPanelDepth>::kSteps == AmxBf16::kStepsPerQuad,
               "the AMX tile loop reads the panels' layout");
 #endif
 
@@ -1177,12 +1207,16 @@ bool gemm_typed(const Element* x, const uint8_t* qweight, const float* scales, c
   } else {
 #if defined(DYQ_AVX512_HAS_AMX)
     if (m >= kAmxMinRows) {
-      return amx_gemm<NativeTiles, AmxBf16, WeightPanel<DequantizedBf16Panel>>(x, qweight, scales, bias, m, n, k,
+      return amx_gemm<NativeTiles, AmxBf16, WeightPanel<DequantizedBf16Panel<kAmxPanelDepth>>>(x, qweight, scales, bias, m, n, k,
                                                                                  group_size, kBits, out);
     }
 #endif
 #if defined(DYQ_AVX512_HAS_BF16)
     if (use_panels(m, k, kBits)) {
+      if (use_dequantized_panel(m, k)) {
+        return panel_gemm<DequantizedBf16Panel<kDequantizedPanelDepth>>(x, qweight, scales, bias, m, n, k, group_size,
+                                                                        kBits, out);
+      }
       return panel_gemm<Bf16Panel>(x, qweight, scales, bias, m, n, k, group_size, kBits, out);
     }
     const Bf16DecodeActivations activations = bf16_decode_activations(x, m, k, group_size);
@@ -1226,6 +1260,7 @@ inline const char* gemm_kernel(int64_t m, int64_t k, int, int act_bits) {
 #endif
   if (act_bits != kFallbackBits) return panel ? DYQ_ISA_NAME "/panel-vnni" : DYQ_ISA_NAME "/rows-vnni";
 #if defined(DYQ_AVX512_HAS_BF16)
+  if (panel && use_dequantized_panel(m, k)) return DYQ_ISA_NAME "/panel-bf16-dequantized";
   return panel ? DYQ_ISA_NAME "/panel-bf16" : DYQ_ISA_NAME "/rows-bf16";
 #else
   return panel ? DYQ_ISA_NAME "/panel-fp32" : DYQ_ISA_NAME "/rows-fp32";
