@@ -526,10 +526,12 @@ inline __m512 dot_bf16_pairs(__m512 acc, __m512i a, __m512i b) {
 // so each nibble position p becomes one vector of 32 weights: shifted down by 4p (none for p = 0), masked
 // to its nibble and flipped to u in one ternary logic ((shifted & 0xF) ^ 0x4308), the top one with a plain
 // XOR, as its shift leaves nothing above it: 7 instructions for the 128 weights of one 64-byte load (4
-// vdpbf16ps), no shuffles, against 8 with byte unpacks. Each block's four products run as two chains of
-// two, added before the block's scale. On the AMD EPYC, where this kernel is bound by its instructions
-// (one thread, C++ loop, alternating builds), both together took M = 1 from 391 to 369 us on 4096 x 4096
-// in cache (6 %), from 12.0 to 10.7 us on the policy's 768 x 256 and 4 % off cold weights. Several weight
+// vdpbf16ps), no shuffles, against 8 with byte unpacks. On the AMD EPYC, where this kernel is bound by its
+// instructions (one thread, C++ loop, alternating builds), that took M = 1 from 391 to 369 us on 4096 x
+// 4096 in cache (6 %), from 12.0 to 10.7 us on the policy's 768 x 256 and 4 % off cold weights. Each
+// block's four products then run as one chain into the block's scale: as two chains of two, their sum cost
+// one more instruction a block (0.300 against 0.287 ms on 4096 x 4096 in cache, cold 1 % to 4 % slower;
+// the weight rows of a call and the rows of a tile keep several chains in flight). Several weight
 // rows per call share the activation loads where a row's activations would not stay in L1 or the per-call
 // costs weigh (bf16_decode_shares_activations).
 // Then sum(x * q_w) = sum(x * w) - 136 * sum(x), whose second term is the activations' own, once per
@@ -661,12 +663,9 @@ void bf16_decode_kernel(const uint8_t* weight_row, const float* scales_row, int6
       const Bf16DecodeBlock& block = rows[r].blocks[t];
 #pragma GCC unroll 4
       for (int c = 0; c < kCols; ++c) {
-        __m512 dot[2];
-        for (int h = 0; h < 2; ++h) {
-          dot[h] = dot_bf16_pairs(_mm512_setzero_ps(), _mm512_load_si512(block.words[2 * h]), weights[c][2 * h]);
-          dot[h] = dot_bf16_pairs(dot[h], _mm512_load_si512(block.words[2 * h + 1]), weights[c][2 * h + 1]);
-        }
-        acc[c * kRows + r] = _mm512_fmadd_ps(_mm512_add_ps(dot[0], dot[1]), scale[c], acc[c * kRows + r]);
+        __m512 dot = _mm512_setzero_ps();
+        for (int v = 0; v < 4; ++v) dot = dot_bf16_pairs(dot, _mm512_load_si512(block.words[v]), weights[c][v]);
+        acc[c * kRows + r] = _mm512_fmadd_ps(dot, scale[c], acc[c * kRows + r]);
       }
     }
   });
