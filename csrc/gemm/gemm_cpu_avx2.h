@@ -100,36 +100,74 @@ inline __m256i dot_u8s8(__m256i acc, __m256i u, __m256i s) {
 
 // ---- row kernels, act_bits 2/4/8 --------------------------------------------------------------------
 
-// 64 columns of one activation row for the integer row kernel.
+// 64 columns of one activation row for the integer row kernel: 96 bytes, the per-group parameters apart
+// (DecodeActivations), so that a row takes 16.5 KiB at K = 11008 rather than the 38.5 KiB it took with
+// s_x and z_x of each lane in every block (224 bytes), more than a 32 KiB L1, which the weights also stream
+// through.
 struct alignas(32) DecodeBlock {
   uint8_t even_codes[32];  // columns 0, 2, ..., 62: a = q_x - z_x as s8 (act_bits 2/4) or q_x (act_bits 8)
   uint8_t odd_codes[32];   // columns 1, 3, ..., 63
-  uint32_t zero_bytes[8];  // act_bits 8: z_x of lane i's group in each byte (0 past k)
   int32_t offsets[8];      // -8 * sum of (q_x - z_x) over lane i's columns 8i..8i+7 (0 past k)
-  float scale_lanes[8];    // s_x of lane i's group (0 past k)
 };
 
-// Activations quantized into DecodeBlocks, ceil(k / 64) per row (zero past k).
+// act_bits 8 at G = 32, whose blocks hold two groups: z_x of lane i's group in each byte (0 past k).
+struct alignas(32) ZeroLanes {
+  uint32_t bytes[8];
+};
+
+// An activation row as the integer row kernel reads it.
+struct DecodeRow {
+  const DecodeBlock* blocks;
+  const float* scales;          // s_x per group
+  const uint32_t* zero_words;   // act_bits 8: z_x of each group in each byte
+  const ZeroLanes* zero_lanes;  // act_bits 8 at G = 32: per block
+};
+
+struct DecodeActivations {
+  std::vector<DecodeBlock> blocks;    // [m][ceil(k / 64)], zero past k
+  std::vector<float> scales;          // [m][groups]
+  std::vector<uint32_t> zero_words;   // [m][groups], act_bits 8
+  std::vector<ZeroLanes> zero_lanes;  // [m][ceil(k / 64)], act_bits 8 at G = 32
+  int64_t blocks_per_row = 0, groups = 0;
+  DecodeRow row(int64_t r) const {
+    return {blocks.data() + r * blocks_per_row, scales.data() + r * groups,
+            zero_words.empty() ? nullptr : zero_words.data() + r * groups,
+            zero_lanes.empty() ? nullptr : zero_lanes.data() + r * blocks_per_row};
+  }
+};
+
+// The m rows of x quantized for the integer row kernel.
 template <typename Element>
-std::vector<DecodeBlock> decode_activations(const Element* x, int64_t m, int64_t k, int group_size, int act_bits) {
-  const int64_t blocks = (k + kBlockColumns - 1) / kBlockColumns;
+DecodeActivations decode_activations(const Element* x, int64_t m, int64_t k, int group_size, int act_bits) {
+  DecodeActivations out;
+  out.blocks_per_row = (k + kBlockColumns - 1) / kBlockColumns;
+  out.groups = group_count(k, group_size);
+  const int64_t blocks = out.blocks_per_row;
   const bool centred = act_bits != 8;
   const int group_shift = __builtin_ctz(group_size);  // group sizes are powers of two, at least 8 (a lane)
-  std::vector<DecodeBlock> quantized(m * blocks);
+  out.blocks.resize(m * blocks);
+  out.scales.resize(m * out.groups);
+  if (!centred) {
+    out.zero_words.resize(m * out.groups);
+    if (group_size < kBlockColumns) out.zero_lanes.resize(m * blocks);
+  }
   parallel_for(0, m, 4, [&](int64_t row_begin, int64_t row_end) {
     std::vector<float> row(k);
     std::vector<uint8_t> codes(k);
-    std::vector<ActivationGroupParams> params(group_count(k, group_size));
+    std::vector<ActivationGroupParams> params(out.groups);
     for (int64_t r = row_begin; r < row_end; ++r) {
       quantize_activation_row(x + r * k, k, group_size, act_bits, row.data(), codes.data(), params.data());
+      for (int64_t g = 0; g < out.groups; ++g) {
+        out.scales[r * out.groups + g] = params[g].scale;
+        if (!centred) out.zero_words[r * out.groups + g] = static_cast<uint32_t>(params[g].zero) * 0x01010101u;
+      }
       // Lane by lane (8 columns, inside one group): the group's parameters once, then its columns.
       for (int64_t t = 0; t < blocks; ++t) {
-        DecodeBlock& block = quantized[r * blocks + t];
+        DecodeBlock& block = out.blocks[r * blocks + t];
         for (int lane = 0; lane < 8; ++lane) {
           const int64_t begin = t * kBlockColumns + 8 * lane;
           const int columns = static_cast<int>(std::clamp<int64_t>(k - begin, 0, 8));  // before k
-          const ActivationGroupParams group = columns > 0 ? params[begin >> group_shift] : ActivationGroupParams{};
-          const int zero = columns > 0 ? group.zero : 0;
+          const int zero = columns > 0 ? params[begin >> group_shift].zero : 0;
           int32_t sum = 0;
           for (int j = 0; j < 8; ++j) {
             const int code = j < columns ? codes[begin + j] : 0;
@@ -137,28 +175,59 @@ std::vector<DecodeBlock> decode_activations(const Element* x, int64_t m, int64_t
             sum += j < columns ? code - zero : 0;
             (j % 2 == 0 ? block.even_codes : block.odd_codes)[4 * lane + j / 2] = static_cast<uint8_t>(value);
           }
-          block.zero_bytes[lane] = centred ? 0u : static_cast<uint32_t>(zero) * 0x01010101u;
           block.offsets[lane] = -8 * sum;
-          block.scale_lanes[lane] = columns > 0 ? group.scale : 0.0f;
+          if (!out.zero_lanes.empty()) out.zero_lanes[r * blocks + t].bytes[lane] = static_cast<uint32_t>(zero) * 0x01010101u;
         }
       }
     }
   });
-  return quantized;
+  return out;
 }
 
-// s_w of each lane of block t (lane i: columns 8i..8i+7): one group for G >= 64; for G = 32 lanes 0-3
-// and 4-7 belong to groups 2t and 2t + 1, the second absent when the row's last block ends before it.
-inline __m256 weight_scale_lanes(const float* scales_row, int64_t t, int group_shift, int64_t groups) {
-  if (group_shift > 5) return _mm256_broadcast_ss(scales_row + ((t * kBlockColumns) >> group_shift));
-  const __m128 second = 2 * t + 1 < groups ? _mm_broadcast_ss(scales_row + 2 * t + 1) : _mm_setzero_ps();
-  return _mm256_set_m128(second, _mm_broadcast_ss(scales_row + 2 * t));
+// The lanes' values of a per-group array for block t (lane i: columns 8i..8i+7): for G >= 64 those of
+// group `group`, the block's; for G = 32 (kTwoGroups) lanes 0-3 and 4-7 belong to groups 2t and 2t + 1,
+// which the array holds (zero past the last group, where the row's last block ends before it).
+template <bool kTwoGroups>
+inline __m256 group_lanes(const float* per_group, int64_t t, int64_t group) {
+  if constexpr (kTwoGroups) {
+    return _mm256_set_m128(_mm_broadcast_ss(per_group + 2 * t + 1), _mm_broadcast_ss(per_group + 2 * t));
+  } else {
+    return _mm256_broadcast_ss(per_group + group);
+  }
 }
 
-// acc[r] += s_x s_w P of each lane of block t, for kRows activation rows and the block's 32 packed bytes.
-template <int kRows, bool kWideCodes>
-inline void accumulate_block(__m256i packed, __m256 weight_scales, const DecodeBlock* const* rows, int64_t t,
-                             __m256* acc) {
+// products[r * pitch + g] = s_w[g] * s_x[r][g] for every group, zero from `groups` to the pitch, for one
+// weight row and kRows activation rows: formed once per weight row, 8 groups an instruction, so that each
+// block multiplies its lanes' P by one broadcast rather than by s_w and s_x apart (the same fp32 product).
+template <int kRows>
+void group_products(const float* scales_row, int64_t groups, const DecodeRow* rows, float* products, int64_t pitch) {
+  for (int r = 0; r < kRows; ++r) {
+    int64_t g = 0;
+    for (; g + 8 <= groups; g += 8) {
+      _mm256_storeu_ps(products + r * pitch + g,
+                       _mm256_mul_ps(_mm256_loadu_ps(scales_row + g), _mm256_loadu_ps(rows[r].scales + g)));
+    }
+    for (; g < pitch; ++g) products[r * pitch + g] = g < groups ? scales_row[g] * rows[r].scales[g] : 0.0f;
+  }
+}
+
+// Groups of a weight row rounded up for group_products: past the last one, the second group of a G = 32
+// block that the row ends before.
+inline int64_t products_pitch(int64_t groups) { return groups + 2; }
+
+// A per-thread buffer of at least `count` floats.
+inline float* products_buffer(int64_t count) {
+  static thread_local std::vector<float> buffer;
+  if (static_cast<int64_t>(buffer.size()) < count) buffer.resize(count);
+  return buffer.data();
+}
+
+// acc[r] += s_x s_w P of each lane of block t, for kRows activation rows and the block's 32 packed bytes;
+// products: the weight row's s_w s_x per group of each activation row, `pitch` apart; `group`: the block's
+// (G >= 64).
+template <int kRows, bool kWideCodes, bool kTwoGroups>
+inline void accumulate_block(__m256i packed, const float* products, int64_t pitch, const DecodeRow* rows,
+                             int64_t t, int64_t group, __m256* acc) {
   const __m256i low_nibbles = _mm256_set1_epi8(0x0F);
   const __m256i u = _mm256_xor_si256(packed, _mm256_set1_epi8(static_cast<char>(0x88)));
   const __m256i even = _mm256_and_si256(u, low_nibbles);
@@ -166,17 +235,21 @@ inline void accumulate_block(__m256i packed, __m256 weight_scales, const DecodeB
   [[maybe_unused]] const __m256i both = kWideCodes ? _mm256_add_epi8(even, odd) : even;  // u sums: below 31
   [[maybe_unused]] const __m256i ones = _mm256_set1_epi16(1);
   for (int r = 0; r < kRows; ++r) {
-    const DecodeBlock& block = rows[r][t];
+    const DecodeBlock& block = rows[r].blocks[t];
     const __m256i a_even = _mm256_load_si256(reinterpret_cast<const __m256i*>(block.even_codes));
     const __m256i a_odd = _mm256_load_si256(reinterpret_cast<const __m256i*>(block.odd_codes));
     const __m256i offsets = _mm256_load_si256(reinterpret_cast<const __m256i*>(block.offsets));
+    // z_x in every byte of every lane (act_bits 8): the lanes past k multiply u = 0.
+    [[maybe_unused]] __m256i zero_bytes;
+    if constexpr (kWideCodes) {
+      zero_bytes = kTwoGroups ? _mm256_load_si256(reinterpret_cast<const __m256i*>(rows[r].zero_lanes[t].bytes))
+                              : _mm256_set1_epi32(static_cast<int>(rows[r].zero_words[group]));
+    }
 #if defined(DYQ_AVX2_HAS_VNNI)
     __m256i dot;  // P of each lane, as on the AVX-512 path
     if constexpr (kWideCodes) {
       dot = dot_u8s8(dot_u8s8(offsets, a_even, even), a_odd, odd);
-      dot = _mm256_sub_epi32(
-          dot, dot_u8s8(_mm256_setzero_si256(), _mm256_load_si256(reinterpret_cast<const __m256i*>(block.zero_bytes)),
-                        both));
+      dot = _mm256_sub_epi32(dot, dot_u8s8(_mm256_setzero_si256(), zero_bytes, both));
     } else {
       dot = dot_u8s8(dot_u8s8(offsets, even, a_even), odd, a_odd);
     }
@@ -184,14 +257,13 @@ inline void accumulate_block(__m256i packed, __m256 weight_scales, const DecodeB
     __m256i pairs;  // exact sums of 4 columns
     if constexpr (kWideCodes) {
       pairs = _mm256_add_epi16(_mm256_maddubs_epi16(a_even, even), _mm256_maddubs_epi16(a_odd, odd));
-      pairs = _mm256_sub_epi16(
-          pairs, _mm256_maddubs_epi16(_mm256_load_si256(reinterpret_cast<const __m256i*>(block.zero_bytes)), both));
+      pairs = _mm256_sub_epi16(pairs, _mm256_maddubs_epi16(zero_bytes, both));
     } else {
       pairs = _mm256_add_epi16(_mm256_maddubs_epi16(even, a_even), _mm256_maddubs_epi16(odd, a_odd));
     }
     const __m256i dot = _mm256_add_epi32(_mm256_madd_epi16(pairs, ones), offsets);
 #endif
-    acc[r] = _mm256_fmadd_ps(_mm256_cvtepi32_ps(dot), _mm256_mul_ps(weight_scales, _mm256_load_ps(block.scale_lanes)),
+    acc[r] = _mm256_fmadd_ps(_mm256_cvtepi32_ps(dot), group_lanes<kTwoGroups>(products + r * pitch, t, group),
                              acc[r]);
   }
 }
@@ -207,13 +279,18 @@ constexpr int decode_columns(int rows) { return rows <= 2 ? 2 : 1; }
 // weight_rows + c * k / 2, its scales at scales_rows + c * groups) and kRows integer activation rows. One
 // weight row alone alternates two accumulators per activation row between the even and the odd blocks;
 // several rows' accumulators are independent chains already.
-template <int kRows, int kCols, bool kWideCodes>
+template <int kRows, int kCols, bool kWideCodes, bool kTwoGroups>
 void decode_int_kernel(const uint8_t* weight_rows, const float* scales_rows, int64_t k, int group_size,
-                       const DecodeBlock* const* rows, float* sums) {
+                       const DecodeRow* rows, float* sums) {
   constexpr int kChains = kCols == 1 ? 2 : 1;
   const int64_t groups = group_count(k, group_size);
   const int group_shift = __builtin_ctz(group_size);
   const int64_t row_bytes = k / 2;
+  const int64_t pitch = products_pitch(groups);
+  float* products = products_buffer(kCols * kRows * pitch);  // [c][r][group]
+  for (int c = 0; c < kCols; ++c) {
+    group_products<kRows>(scales_rows + c * groups, groups, rows, products + c * kRows * pitch, pitch);
+  }
   const int64_t full_blocks = k / kBlockColumns;
   __m256 acc[kChains][kCols][kRows];
   for (auto& chain : acc) {
@@ -227,6 +304,7 @@ void decode_int_kernel(const uint8_t* weight_rows, const float* scales_rows, int
   // Unrolled, so that the accumulators stay registers: indexed in a loop, GCC kept them on the stack, a load
   // and a store around every multiply-add.
   auto accumulate = [&](int64_t t, int chain, bool tail) {
+    const int64_t group = (t * kBlockColumns) >> group_shift;  // the block's, for G >= 64
 #pragma GCC unroll 4
     for (int c = 0; c < kCols; ++c) {
       const uint8_t* packed = weight_rows + c * row_bytes + t * (kBlockColumns / 2);
@@ -236,9 +314,9 @@ void decode_int_kernel(const uint8_t* weight_rows, const float* scales_rows, int
         std::memcpy(tail_bytes, packed, (k % kBlockColumns) / 2);
         packed = tail_bytes;
       }
-      accumulate_block<kRows, kWideCodes>(_mm256_loadu_si256(reinterpret_cast<const __m256i*>(packed)),
-                                          weight_scale_lanes(scales_rows + c * groups, t, group_shift, groups), rows,
-                                          t, acc[chain][c]);
+      accumulate_block<kRows, kWideCodes, kTwoGroups>(_mm256_loadu_si256(reinterpret_cast<const __m256i*>(packed)),
+                                                      products + c * kRows * pitch, pitch, rows, t, group,
+                                                      acc[chain][c]);
     }
   };
   int64_t t = 0;
@@ -716,14 +794,17 @@ bool gemm_typed(const Element* x, const uint8_t* qweight, const float* scales, c
             qweight, scales, bias, rows, n, k, group_size, out + row_begin * n);
       });
     }
-    const int64_t blocks = (k + kBlockColumns - 1) / kBlockColumns;
-    const std::vector<DecodeBlock> activations = decode_activations(x, m, k, group_size, kBits);
+    const DecodeActivations activations = decode_activations(x, m, k, group_size, kBits);
     return run_tiles<kMaxTileRows, decode_columns>(
-        qweight, scales, bias, m, n, k, group_size, out, [&](int64_t r) { return activations.data() + r * blocks; },
+        qweight, scales, bias, m, n, k, group_size, out, [&](int64_t r) { return activations.row(r); },
         [&](auto tile_rows, auto tile_columns, const uint8_t* weight_rows, const float* scales_rows,
-            const DecodeBlock* const* rows, float* sums) {
-          decode_int_kernel<decltype(tile_rows)::value, decltype(tile_columns)::value, kBits == 8>(
-              weight_rows, scales_rows, k, group_size, rows, sums);
+            const DecodeRow* rows, float* sums) {
+          constexpr int kRows = decltype(tile_rows)::value, kCols = decltype(tile_columns)::value;
+          if (group_size == 32) {
+            decode_int_kernel<kRows, kCols, kBits == 8, true>(weight_rows, scales_rows, k, group_size, rows, sums);
+          } else {
+            decode_int_kernel<kRows, kCols, kBits == 8, false>(weight_rows, scales_rows, k, group_size, rows, sums);
+          }
         });
   } else {
     const int64_t pitch = group_padded(k, group_size);
