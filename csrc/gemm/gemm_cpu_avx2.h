@@ -569,7 +569,7 @@ inline __m256i broadcast_quad(const uint8_t* codes) {
 // (PanelSums says where it goes). Returns the output lanes that came out inf or NaN.
 template <int kRows, typename Element>
 unsigned int_panel_kernel(const IntWeightPanel& panel, const IntPanelRow* rows, int64_t depth, int group_size,
-                          PanelSums<Element, kPanelOutputs> sums) {
+                          const PanelSums<Element, kPanelOutputs>& sums) {
   [[maybe_unused]] const __m256i ones = _mm256_set1_epi16(1);
   const int64_t quads_per_group = group_size / 4;
   const auto* codes = reinterpret_cast<const __m256i*>(panel.codes.data());
@@ -646,7 +646,7 @@ struct IntPanel {
   }
   template <int kRows, typename Element>
   static unsigned kernel(const WeightPanel& panel, const Row* rows, int64_t depth, int group_size,
-                         PanelSums<Element, kPanelOutputs> sums) {
+                         const PanelSums<Element, kPanelOutputs>& sums) {
     return int_panel_kernel<kRows>(panel, rows, depth, group_size, sums);
   }
 };
@@ -686,7 +686,7 @@ struct Fp32WeightPanel {
 
 template <int kRows, typename Element>
 unsigned fp32_panel_kernel(const Fp32WeightPanel& panel, const float* const* rows, int64_t depth, int group_size,
-                           PanelSums<Element, kPanelOutputs> sums) {
+                           const PanelSums<Element, kPanelOutputs>& sums) {
   const auto* codes = reinterpret_cast<const float*>(panel.codes.data());
   const int64_t groups = depth / group_size;
   unsigned nonfinite = 0;
@@ -724,7 +724,7 @@ struct Fp32Panel {
   static Row advance(Row row, int64_t column, int64_t) { return row + column; }
   template <int kRows, typename Element>
   static unsigned kernel(const WeightPanel& panel, const Row* rows, int64_t depth, int group_size,
-                         PanelSums<Element, kPanelOutputs> sums) {
+                         const PanelSums<Element, kPanelOutputs>& sums) {
     return fp32_panel_kernel<kRows>(panel, rows, depth, group_size, sums);
   }
 };

@@ -1030,7 +1030,7 @@ struct WeightPanel {
 // lanes that came out inf or NaN (none where nothing was stored in the output).
 template <typename Kind, int kRows, typename Element>
 unsigned panel_kernel(const WeightPanel<Kind>& panel, const int32_t* words, const float* params, int64_t depth,
-                       int group_size, PanelSums<Element, kPanelColumns> sums) {
+                       int group_size, const PanelSums<Element, kPanelColumns>& sums) {
   using Accumulator = typename Kind::Accumulator;
   constexpr int kSteps = Kind::kSteps;
   const int64_t quads = quad_count(depth);
