@@ -260,7 +260,7 @@ inline void offset_weight_nibbles(const uint8_t* packed, __mmask64 bytes, bool f
   odd = _mm512_and_si512(_mm512_srli_epi16(u, 4), low_nibbles);
 }
 
-// products[r][g] = s_w[g] * s_x[r][g] for every group (zero past the last, to a multiple of 16).
+// products[r][g] = s_w[g] * s_x[r][g] for every group, zero past the last up to the pitch (a multiple of 16).
 template <int kRows>
 void group_products(const float* scales_row, int64_t groups, const DecodeRow* rows, float* products, int64_t pitch) {
   for (int r = 0; r < kRows; ++r) {
@@ -312,6 +312,17 @@ inline __m512 block_lanes(const float* per_group, int64_t t, BlockIsGroup, int g
 }
 
 inline int64_t sixteen_padded(int64_t count) { return (count + 15) / 16 * 16; }
+
+// block_lanes for an array padded with 16 zeros past its groups (group_products): the block's groups in
+// one unmasked load, `first_group_shift` = log2(128 / G). The masked load of the unpadded form, its mask
+// worked out per block and weight row, kept the integer row kernel's accumulators on the stack (a store of
+// each after every block) at G = 32 and 64.
+template <typename BlockIsGroup>
+inline __m512 padded_block_lanes(const float* per_group, int64_t t, BlockIsGroup, int first_group_shift,
+                                 __m512i lane_group) {
+  if constexpr (BlockIsGroup::value) return _mm512_set1_ps(per_group[t]);
+  return permutexvar_ps(lane_group, _mm512_loadu_ps(per_group + (t << first_group_shift)));
+}
 
 // The prefetch that goes with reading block t of weight row c in a row kernel over kCols weight rows: one
 // row is one stream, prefetched kWeightPrefetchBytes ahead; several rows, one sweep in memory order over
@@ -384,8 +395,9 @@ template <int kRows, int kCols, bool kWideCodes>
 void decode_int_kernel(const uint8_t* weight_rows, const float* scales_rows, int64_t k, int group_size,
                        const DecodeRow* rows, float* sums) {
   const int64_t groups = group_count(k, group_size);
-  const int64_t pitch = sixteen_padded(groups);
+  const int64_t pitch = sixteen_padded(groups) + 16;  // zeros past the groups, for padded_block_lanes
   const int64_t row_bytes = k / 2;
+  const int first_group_shift = __builtin_ctz(kBlockColumns / group_size);
   float* products = scratch_floats(kCols * kRows * pitch);  // [c][r][group]
   for (int c = 0; c < kCols; ++c) {
     group_products<kRows>(scales_rows + c * groups, groups, rows, products + c * kRows * pitch, pitch);
@@ -425,8 +437,8 @@ void decode_int_kernel(const uint8_t* weight_rows, const float* scales_rows, int
           dot = _mm512_dpbusd_epi32(_mm512_dpbusd_epi32(offsets, even[c], a_even), odd[c], a_odd);
         }
         acc[c][r] = _mm512_fmadd_ps(cvtepi32_ps(dot),
-                                    block_lanes(products + (c * kRows + r) * pitch, t, block_is_group, group_size,
-                                                groups, lane_group),
+                                    padded_block_lanes(products + (c * kRows + r) * pitch, t, block_is_group,
+                                                       first_group_shift, lane_group),
                                     acc[c][r]);
       }
     }
