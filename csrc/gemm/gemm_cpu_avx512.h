@@ -265,7 +265,7 @@ template <int kRows>
 void group_products(const float* scales_row, int64_t groups, const DecodeRow* rows, float* products, int64_t pitch) {
   for (int r = 0; r < kRows; ++r) {
     for (int64_t g = 0; g < pitch; g += 16) {
-      const __mmask16 lanes = groups - g >= 16 ? kAll16 : static_cast<__mmask16>((1u << std::max<int64_t>(groups - g, 0)) - 1);
+      const __mmask16 lanes = groups - g >= 16 ? kAll16 : static_cast<__mmask16>((1u << (groups - g)) - 1);
       _mm512_store_ps(products + r * pitch + g, _mm512_mul_ps(_mm512_maskz_loadu_ps(lanes, scales_row + g),
                                                               _mm512_maskz_loadu_ps(lanes, rows[r].scales + g)));
     }
@@ -300,39 +300,31 @@ void for_each_block(int64_t k, int group_size, Body&& body) {
 }
 
 // The lanes' values of a per-group array (scales, products) for block t: a broadcast when a block is one
-// group (G = 128), else the block's groups spread over the lanes by `lane_group`.
-// `whole_block` masks the 128 / G groups of a block, all of them a full block's (`full`); only the rows'
-// last, partial block works out its own (worked out for every block and weight row, the masks cost the
-// W4A16 row kernel 5 % to 7 % at G = 32 on the AMD EPYC: 0.375-0.384 against 0.356-0.358 ms, M = 1, one
-// thread, 4096 x 4096 in cache; at G = 32 and 64 its loop still stores the accumulators after every block).
+// group (G = 128), else the block's groups spread over the lanes by `lane_group`. A full block's 128 / G
+// groups come in one plain load of 8 or 16 bytes; only the rows' last, partial block masks its own. A
+// masked load in the loop over the full blocks made GCC store the row kernels' accumulators to the stack
+// after every block (it takes the load for one that may read them). M = 1, one thread on the AMD EPYC,
+// 4096 x 4096 in cache: W4A16 at G = 64 0.336-0.346 -> 0.321 ms, at G = 32 0.355-0.362 -> 0.340-0.345
+// (G = 128 0.288); the integer kernel, which had read a copy of its products padded with 16 zeros for an
+// unmasked 64-byte load, A8 at G = 64 0.299 -> 0.292, at G = 32 0.330 -> 0.322.
 template <typename BlockIsGroup, typename Full>
-inline __m512 block_lanes(const float* per_group, int64_t t, BlockIsGroup, Full, __mmask16 whole_block,
-                          int group_size, int64_t groups, __m512i lane_group) {
+inline __m512 block_lanes(const float* per_group, int64_t t, BlockIsGroup, Full, int group_size, int64_t groups,
+                          __m512i lane_group) {
   if constexpr (BlockIsGroup::value) return _mm512_set1_ps(per_group[t]);
   const int64_t per_block = kBlockColumns / group_size;
-  const int64_t first = t * per_block;
-  __mmask16 lanes = whole_block;
-  if constexpr (!Full::value) {
-    lanes = static_cast<__mmask16>((1u << std::min<int64_t>(per_block, groups - first)) - 1);
+  const float* first = per_group + t * per_block;
+  __m128 block_groups;
+  if constexpr (Full::value) {
+    block_groups = per_block == 2 ? _mm_castpd_ps(_mm_load_sd(reinterpret_cast<const double*>(first)))
+                                  : _mm_loadu_ps(first);
+  } else {
+    const auto lanes = static_cast<__mmask8>((1u << std::min<int64_t>(per_block, groups - t * per_block)) - 1);
+    block_groups = _mm_maskz_loadu_ps(lanes, first);
   }
-  return permutexvar_ps(lane_group, _mm512_maskz_loadu_ps(lanes, per_group + first));
+  return permutexvar_ps(lane_group, _mm512_zextps128_ps512(block_groups));
 }
 
 inline int64_t sixteen_padded(int64_t count) { return (count + 15) / 16 * 16; }
-
-// block_lanes for an array padded with 16 zeros past its groups (the integer kernel's group_products): the
-// block's groups in one unmasked load, `first_group_shift` = log2(128 / G). The masked load of the
-// unpadded form, its mask worked out per block and weight row, kept the integer row kernel's accumulators
-// on the stack (a store of each after every block) at G = 32 and 64; with block_lanes' mask kept for whole
-// blocks that kernel was still 7 % to 12 % slower than this at G = 64 (one thread, 4096 x 4096 in cache,
-// A8). The W4A16 kernel reads the caller's unpadded scales, and copying them padded per call cost it more
-// than it saved.
-template <typename BlockIsGroup>
-inline __m512 padded_block_lanes(const float* per_group, int64_t t, BlockIsGroup, int first_group_shift,
-                                 __m512i lane_group) {
-  if constexpr (BlockIsGroup::value) return _mm512_set1_ps(per_group[t]);
-  return permutexvar_ps(lane_group, _mm512_loadu_ps(per_group + (t << first_group_shift)));
-}
 
 // The prefetch that goes with reading block t of weight row c in a row kernel over kCols weight rows: one
 // row is one stream, prefetched kWeightPrefetchBytes ahead; several rows, one sweep in memory order over
@@ -405,9 +397,8 @@ template <int kRows, int kCols, bool kWideCodes>
 void decode_int_kernel(const uint8_t* weight_rows, const float* scales_rows, int64_t k, int group_size,
                        const DecodeRow* rows, float* sums) {
   const int64_t groups = group_count(k, group_size);
-  const int64_t pitch = sixteen_padded(groups) + 16;  // zeros past the groups, for padded_block_lanes
+  const int64_t pitch = sixteen_padded(groups);
   const int64_t row_bytes = k / 2;
-  const int first_group_shift = __builtin_ctz(kBlockColumns / group_size);
   float* products = scratch_floats(kCols * kRows * pitch);  // [c][r][group]
   for (int c = 0; c < kCols; ++c) {
     group_products<kRows>(scales_rows + c * groups, groups, rows, products + c * kRows * pitch, pitch);
@@ -447,8 +438,8 @@ void decode_int_kernel(const uint8_t* weight_rows, const float* scales_rows, int
           dot = _mm512_dpbusd_epi32(_mm512_dpbusd_epi32(offsets, even[c], a_even), odd[c], a_odd);
         }
         acc[c][r] = _mm512_fmadd_ps(cvtepi32_ps(dot),
-                                    padded_block_lanes(products + (c * kRows + r) * pitch, t, block_is_group,
-                                                       first_group_shift, lane_group),
+                                    block_lanes(products + (c * kRows + r) * pitch, t, block_is_group, full,
+                                                group_size, groups, lane_group),
                                     acc[c][r]);
       }
     }
@@ -659,7 +650,6 @@ void bf16_decode_kernel(const uint8_t* weight_row, const float* scales_row, int6
   const __m512i low_nibble = _mm512_set1_epi16(0x000F);
   const __m512i exponent_and_flip = _mm512_set1_epi16(0x4308);  // 2^7, and u = nibble XOR 8
   const __mmask64 tail_bytes = (__mmask64{1} << ((k % kBlockColumns) / 2)) - 1;
-  const __mmask16 whole_block = static_cast<__mmask16>((1u << (kBlockColumns / group_size)) - 1);
   __m512 acc[kCols * kRows];  // [c][r]
   for (int i = 0; i < kCols * kRows; ++i) acc[i] = _mm512_setzero_ps();
   for_each_block(k, group_size, [&](int64_t t, auto full, auto block_is_group) __attribute__((always_inline)) {
@@ -677,8 +667,7 @@ void bf16_decode_kernel(const uint8_t* weight_row, const float* scales_row, int6
       weights[c][1] = _mm512_ternarylogic_epi32(_mm512_srli_epi16(words, 4), low_nibble, exponent_and_flip, 0x6A);
       weights[c][2] = _mm512_ternarylogic_epi32(_mm512_srli_epi16(words, 8), low_nibble, exponent_and_flip, 0x6A);
       weights[c][3] = _mm512_xor_si512(_mm512_srli_epi16(words, 12), exponent_and_flip);
-      scale[c] = block_lanes(scales_row + c * groups, t, block_is_group, full, whole_block, group_size, groups,
-                             lane_group);
+      scale[c] = block_lanes(scales_row + c * groups, t, block_is_group, full, group_size, groups, lane_group);
     }
     // Unrolled, so that the accumulators stay registers (rolled, GCC kept those of 5 activation rows on the
     // stack, a load and a store around every multiply-add, 5 % slower).
