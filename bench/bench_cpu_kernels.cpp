@@ -2,8 +2,9 @@
 // Built with the C++ tests (-DDYQ_BUILD_TESTS=ON), run by hand:
 //
 //   cmake -S . -B build/ctest -G Ninja -DDYQ_BUILD_PYTHON=OFF -DDYQ_BUILD_TESTS=ON && cmake --build build/ctest
-//   [DYQ_CPU_ISA=avx512|avx_vnni|avx2|portable] build/ctest/dyq_bench_cpu_kernels [results.json [threads]]
+//   [DYQ_CPU_ISA=avx512|avx_vnni|avx2|portable] build/ctest/dyq_bench_cpu_kernels [results.json [threads [G]]]
 //
+// G, the weights' group size: 128 (the default), 64 or 32.
 // Hot: M = 1, 16 and 256 on one copy of the weights. Prints a table (median wall time, and process CPU
 // time divided by the thread count, which stays meaningful on a shared machine).
 // Cold decode: M = 1 over as many copies of the weights as fill four times the last-level cache, called in
@@ -146,7 +147,11 @@ int main(int argc, char** argv) {
     return 1;
   }
   dyq::set_thread_count_source(thread_count);
-  constexpr int kGroupSize = 128;
+  const int group_size = argc > 3 ? std::atoi(argv[3]) : 128;
+  if (group_size != 32 && group_size != 64 && group_size != 128) {
+    std::fprintf(stderr, "group size must be 32, 64 or 128, got %s\n", argv[3]);
+    return 1;
+  }
   std::mt19937 rng(0);
   std::normal_distribution<float> normal(0.0f, 1.0f);
   std::vector<Row> rows;
@@ -154,21 +159,21 @@ int main(int argc, char** argv) {
   // switch to several weight rows per call.
   const std::pair<int64_t, int64_t> shapes[] = {{4096, 4096}, {11008, 4096}, {4096, 11008}, {5120, 13824}};
 
-  std::printf("hot, %u thread(s)\n%6s %6s %6s %8s %12s %14s\n", g_threads, "M", "N", "K", "act_bits", "median ms",
-              "cpu/thread ms");
+  std::printf("hot, %u thread(s), G = %d\n%6s %6s %6s %8s %12s %14s\n", g_threads, group_size, "M", "N", "K",
+              "act_bits", "median ms", "cpu/thread ms");
   for (auto [n, k] : shapes) {
     std::vector<float> weight(n * k);
     for (auto& w : weight) w = 0.02f * normal(rng);
     HugeBuffer qweight = huge_buffer(n * k / 2);
-    std::vector<float> scales(n * k / kGroupSize);
-    dyq::cpu::quantize_weight(weight.data(), n, k, kGroupSize, qweight.get(), scales.data());
+    std::vector<float> scales(n * k / group_size);
+    dyq::cpu::quantize_weight(weight.data(), n, k, group_size, qweight.get(), scales.data());
     for (int64_t m : {1, 16, 256}) {
       std::vector<float> x(m * k), out(m * n);
       for (auto& v : x) v = normal(rng);
       for (int act_bits : {2, 4, 8, 16}) {
         auto run = [&] {
           dyq::cpu::gemm(x.data(), dyq::ScalarType::kFloat32, qweight.get(), scales.data(), nullptr, m, n, k,
-                         kGroupSize, act_bits, out.data());
+                         group_size, act_bits, out.data());
         };
         run();  // warm-up
         const int reps = m == 256 ? 3 : 20;
@@ -199,7 +204,7 @@ int main(int argc, char** argv) {
               g_threads, static_cast<long>(cache_bytes >> 20), kColdRounds, kCallsPerRound, "N", "K", "act_bits",
               "median ms", "GB/s", "stream GB/s", "share", "rounds' shares");
   for (auto [n, k] : shapes) {
-    const int64_t weight_bytes = n * k / 2, scale_bytes = n * (k / kGroupSize) * int64_t{sizeof(float)};
+    const int64_t weight_bytes = n * k / 2, scale_bytes = n * (k / group_size) * int64_t{sizeof(float)};
     const int copies = static_cast<int>(std::max<int64_t>(2, (4 * cache_bytes + weight_bytes + scale_bytes - 1) /
                                                                  (weight_bytes + scale_bytes)));
     std::vector<HugeBuffer> qweights;
@@ -210,7 +215,7 @@ int main(int argc, char** argv) {
       if (c == 0) {
         std::vector<float> weight(n * k);
         for (auto& w : weight) w = 0.02f * normal(rng);
-        dyq::cpu::quantize_weight(weight.data(), n, k, kGroupSize, qweights[0].get(),
+        dyq::cpu::quantize_weight(weight.data(), n, k, group_size, qweights[0].get(),
                                   reinterpret_cast<float*>(scales[0].get()));
       } else {
         std::memcpy(qweights[c].get(), qweights[0].get(), weight_bytes);
@@ -221,7 +226,7 @@ int main(int argc, char** argv) {
     for (auto& v : x) v = normal(rng);
     auto call = [&](int copy, int act_bits) {
       dyq::cpu::gemm(x.data(), dyq::ScalarType::kFloat32, qweights[copy].get(),
-                     reinterpret_cast<const float*>(scales[copy].get()), nullptr, 1, n, k, kGroupSize, act_bits,
+                     reinterpret_cast<const float*>(scales[copy].get()), nullptr, 1, n, k, group_size, act_bits,
                      out.data());
     };
     for (int c = 0; c < copies; ++c) call(c, 8);  // a first, untimed pass over the copies
@@ -264,7 +269,7 @@ int main(int argc, char** argv) {
                "\"dtype\": \"float32\", \"last_level_cache_bytes\": %ld, \"stream_read_bytes\": %zu, "
                "\"cold_rounds\": %d, \"cold_calls_per_round\": %d, \"cold_share\": \"median over the rounds of "
                "the width's GB/s over the round's read\", \"rows\": [",
-               cpu_model().c_str(), path.name, g_threads, kGroupSize, static_cast<long>(cache_bytes), stream_bytes,
+               cpu_model().c_str(), path.name, g_threads, group_size, static_cast<long>(cache_bytes), stream_bytes,
                kColdRounds, kCallsPerRound);
   for (size_t i = 0; i < rows.size(); ++i) {
     const Row& r = rows[i];
@@ -272,7 +277,7 @@ int main(int argc, char** argv) {
                  "%s\n  {\"mode\": \"%s\", \"m\": %ld, \"n\": %ld, \"k\": %ld, \"act_bits\": %d, \"kernel\": \"%s\", "
                  "\"median_ms\": %.4f",
                  i ? "," : "", r.mode.c_str(), r.m, r.n, r.k, r.act_bits,
-                 path.kernels->gemm_kernel(r.m, r.k, kGroupSize, r.act_bits), r.median_ms);
+                 path.kernels->gemm_kernel(r.m, r.k, group_size, r.act_bits), r.median_ms);
     if (r.mode == "hot") {
       std::fprintf(json, ", \"cpu_per_thread_ms\": %.4f}", r.cpu_per_thread_ms);
     } else {
