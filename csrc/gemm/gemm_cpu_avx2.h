@@ -380,14 +380,6 @@ inline void fp32_weight_codes(const uint8_t* packed, __m256& even, __m256& odd_t
                               _mm256_set1_ps(8388736.0f));  // 2^23 + 128
 }
 
-// Calls fn(std::integral_constant<int, G>) for the run-time group size G (32, 64 or 128).
-template <typename Fn>
-void dispatch_group_size(int group_size, Fn&& fn) {
-  if (group_size == 32) return fn(std::integral_constant<int, 32>());
-  if (group_size == 64) return fn(std::integral_constant<int, 64>());
-  fn(std::integral_constant<int, 128>());
-}
-
 // sums[r] = y[r] (without bias) for one weight row and kRows fp32 activation rows (deinterleaved,
 // group_padded). One row alone gets four accumulator chains (two 16-column chunks, even and odd),
 // several rows two each. The group size is a template argument, so that a group's steps unroll into
