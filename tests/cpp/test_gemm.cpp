@@ -138,10 +138,11 @@ TEST_P(GemmTest, MatchesNaiveReferenceOnSeveralShapes) {
 TEST_P(GemmTest, LastGroupHoldsTheRemainderOfK) {
   const auto [dtype, act_bits, group_size, with_bias] = GetParam();
   // K not a multiple of the group size: 576 (SmolLM2's hidden size), 960 (SmolVLA's), a short even
-  // remainder, a remainder straddling the 128-column blocks, and K shorter than one group. M = 13 and 40
-  // take the panel path.
+  // remainder, a remainder straddling the 128-column blocks (in the row kernels a last group of whole and
+  // partial chunks), and K shorter than one group. M = 13 and 40 take the panel path.
   const std::vector<std::tuple<int64_t, int64_t, int64_t>> shapes = {
-      {1, 37, 576}, {3, 21, 960}, {2, 19, group_size + 2}, {13, 40, 2 * group_size + 46}, {40, 9, 30}, {5, 7, 6}};
+      {1, 37, 576}, {3, 21, 960}, {2, 19, group_size + 2}, {1, 23, 2 * group_size + 46},
+      {13, 40, 2 * group_size + 46}, {40, 9, 30}, {5, 7, 6}};
   uint32_t seed = 7 * act_bits + group_size;
   for (const auto& [m, n, k] : shapes) check_problem({m, n, k, group_size, act_bits, with_bias, seed++}, dtype);
 }
