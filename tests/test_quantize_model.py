@@ -274,3 +274,33 @@ def test_min_act_bits_refuses_a_pattern_that_reaches_no_converted_layer():
 def test_min_act_bits_refuses_a_width_that_does_not_exist():
     with pytest.raises(ValueError, match=r"min_act_bits\['gate_proj'\]"):
         dyq.quantize_model(tiny_llama(), min_act_bits={"gate_proj": 6})
+
+
+def test_min_act_bits_must_be_a_mapping_of_patterns():
+    with pytest.raises(TypeError, match=r"min_act_bits must be a dict \{pattern: bits\}.*got int 8"):
+        dyq.quantize_model(tiny_llama(), min_act_bits=8)
+    with pytest.raises(TypeError, match=r"min_act_bits patterns must be glob strings.*got int 0"):
+        dyq.quantize_model(tiny_llama(), min_act_bits={0: 8})
+
+
+def test_a_skip_pattern_that_matches_no_layer_is_warned_about():
+    """A misspelt skip name converts the layer it meant to keep: the conversion goes on, with a warning."""
+    model = tiny_llama()
+    with pytest.warns(UserWarning, match=r"skip patterns \['lm-head'\] match no linear layer"):
+        report = dyq.quantize_model(model, skip=("lm-head", "*.q_proj"))
+    assert "lm_head" in report.converted
+    assert {n for n in report.skipped} == {"model.layers.0.self_attn.q_proj", "model.layers.1.self_attn.q_proj"}
+    with pytest.raises(TypeError, match=r"skip patterns must be glob strings.*got int 1"):
+        dyq.quantize_model(tiny_llama(), skip=(1,))
+
+
+def test_the_default_skip_is_quiet_on_a_model_without_an_lm_head(recwarn):
+    report = dyq.quantize_model(tiny_bert())
+    assert report.converted and not report.skipped
+    assert not [w for w in recwarn if "dyq" in str(w.message)]
+
+
+def test_a_model_without_linear_layers_is_warned_about():
+    with pytest.warns(UserWarning, match=r"Sequential holds no nn.Linear; nothing to convert"):
+        report = dyq.quantize_model(torch.nn.Sequential(torch.nn.ReLU()))
+    assert not report.converted

@@ -3,6 +3,8 @@ from __future__ import annotations
 
 import fnmatch
 import re
+import warnings
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Iterable, Pattern, Union
 
@@ -38,6 +40,12 @@ def _matches(name: str, patterns: Iterable[SkipPattern]) -> bool:
         elif fnmatch.fnmatchcase(name, p) or fnmatch.fnmatchcase(last, p):
             return True
     return False
+
+
+def _check_pattern(pattern, argument: str) -> None:
+    if not isinstance(pattern, (str, re.Pattern)):
+        raise TypeError(f"{argument} patterns must be glob strings or compiled regular expressions, got "
+                        f"{type(pattern).__name__} {pattern!r}")
 
 
 @dataclass
@@ -105,7 +113,8 @@ def quantize_model(model: nn.Module, group_size: int = 128, skip: Iterable[SkipP
         skip: layer names to leave in full precision: globs matched against the full name and its last
             component (``"lm_head"``, ``"*.attn.*"``) or compiled regular expressions. The LM head is skipped
             by default (it scores the action tokens; pass ``skip=()`` to convert it too). A layer held under
-            several names is skipped if any of them matches.
+            several names is skipped if any of them matches. A pattern passed here that matches no linear
+            layer is warned about (a misspelt name would convert the layer it meant to keep).
         act_bits: the initial activation bit-width of the converted layers (16 = unquantized).
         flag: a :class:`PrecisionFlag` that every converted layer reads at run time, so that one write
             switches the whole model (the dispatcher's b*_t).
@@ -140,10 +149,16 @@ def quantize_model(model: nn.Module, group_size: int = 128, skip: Iterable[SkipP
                          "[batch, seq]) disjoint from the evaluation data")
     if method not in CALIBRATED_METHODS and calibration is not None:
         raise ValueError(f"calibration is only used by methods {CALIBRATED_METHODS}; method={method!r} takes none")
+    if min_act_bits is not None and not isinstance(min_act_bits, Mapping):
+        raise TypeError(f"min_act_bits must be a dict {{pattern: bits}}, e.g. {{'gate_proj': 8}}, got "
+                        f"{type(min_act_bits).__name__} {min_act_bits!r}")
     floors = dict(min_act_bits or {})
     for pattern, bits in floors.items():
+        _check_pattern(pattern, "min_act_bits")
         check_bits(bits, f"min_act_bits[{pattern!r}]")
     skip = tuple(skip) if not isinstance(skip, (str, re.Pattern)) else (skip,)
+    for pattern in skip:
+        _check_pattern(pattern, "skip")
     report = QuantizationReport(group_size=group_size, method=method, model_bytes_before=_module_bytes(model))
 
     names: dict[int, list[str]] = {}
@@ -155,6 +170,19 @@ def quantize_model(model: nn.Module, group_size: int = 128, skip: Iterable[SkipP
         elif isinstance(module, nn.Linear):
             names.setdefault(id(module), []).append(name)
             modules[id(module)] = module
+
+    if not modules and not report.already_quantized:
+        warnings.warn(f"dyq.quantize_model: {type(model).__name__} holds no nn.Linear; nothing to convert",
+                      stacklevel=2)
+    # A skip pattern of the caller's that names no linear layer quantizes what it was meant to keep (a
+    # misspelt name); warned rather than refused, as one skip list may serve several architectures. The
+    # default ("lm_head") is quiet on models without one (an encoder).
+    all_names = [n for key in modules for n in names[key]] + report.already_quantized
+    unused_skip = [p for p in skip if skip != DEFAULT_SKIP and not any(_matches(n, (p,)) for n in all_names)]
+    if unused_skip and all_names:
+        warnings.warn(f"dyq.quantize_model: skip patterns {[getattr(p, 'pattern', p) for p in unused_skip]} match no "
+                      f"linear layer (such as {all_names[0]!r}); patterns are globs against each layer's full name "
+                      "and its last component, or compiled regular expressions", stacklevel=2)
 
     def skipped_as(key: int) -> str | None:
         return next((n for n in names[key] if _matches(n, skip)), None)
