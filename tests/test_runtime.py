@@ -225,6 +225,16 @@ def test_a_failing_prefill_leaves_the_runtime_usable(runtime):
     assert runtime.dispatcher.steps == 2
 
 
+@pytest.mark.parametrize("prefill, decode, message", [(None, lambda _: None, "prefill must be a callable"),
+                                                       (lambda: None, "decode", "decode must be a callable")])
+def test_a_step_without_callables_is_refused_before_the_dispatcher_moves(runtime, prefill, decode, message):
+    with pytest.raises(TypeError, match=message):
+        runtime.step(ACTIONS[0], prefill, decode)
+    assert runtime.dispatcher.steps == 0 and not runtime.stats
+    runtime.step(ACTIONS[0], lambda: None, lambda _: None)
+    assert runtime.dispatcher.steps == 1
+
+
 def test_reset_restores_full_precision_for_the_next_episode(runtime):
     model = FakeModel(runtime.flag)
     control_loop(runtime, model, ACTIONS)
