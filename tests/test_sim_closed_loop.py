@@ -361,3 +361,21 @@ def test_summarize_only_names_the_figure_after_its_table_and_skips_a_task_withou
     assert second.returncode == 0, second.stderr[-2000:]
     # Rows written to another table must not overwrite the official table's figure, closed_loop_lift.png.
     assert [p.name for p in docs.glob("figures/*.png")] == ["closed_loop_perturbed_lift.png"]
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["--tasks", "lift,stack"], "argument --tasks: unknown 'stack'; choose comma-separated names from lift,"),
+    (["--tasks", "lift", "--configs", "fp32,w4a3"], "--configs: unknown configuration 'w4a3'"),
+    (["--tasks", "lift", "--checkpoint", "lift"], "argument --checkpoint: expected NAME=DIR, got 'lift'"),
+    (["--tasks", "lift", "--checkpoint", "stack=."], "unknown 'stack' in 'stack=.'"),
+    (["--tasks", "lift", "--checkpoint", "square=."], "'square' is not evaluated (tasks: ['lift'])"),
+    (["--tasks", "lift", "--checkpoint", "lift={empty}"], "has no policy.json: train one with `dyq train lift`"),
+])
+def test_eval_refuses_bad_tasks_configs_and_checkpoints_in_one_line(argv, message, tmp_path, capsys):
+    from dyq.apps import cli
+
+    argv = [a.format(empty=tmp_path) for a in argv]
+    assert cli.main(["eval", *argv, "--cache", str(tmp_path / "cache"), "--episodes", "1"]) == 2
+    err = capsys.readouterr().err
+    assert len(err.strip().splitlines()) == 1 and message in err, err
+    assert not (tmp_path / "cache").exists() or not any((tmp_path / "cache").iterdir())

@@ -20,7 +20,7 @@ import os
 import traceback
 from pathlib import Path
 from types import ModuleType
-from typing import Callable
+from typing import Callable, Sequence
 
 # Every type here carries invalid_examples(folder) -> command-line values it rejects (files made in
 # `folder`), so that tests/test_cli.py can try each one on every argument of every command.
@@ -66,6 +66,35 @@ def positive_float(text: str) -> float:
 
 
 positive_float.invalid_examples = lambda folder: ["not-a-number", "0", "nan"]
+
+
+def comma_list(choices: Sequence[str]) -> Callable[[str], list[str]]:
+    """A comma-separated list of names, each one of ``choices`` (empty items are dropped)."""
+    def parse(text: str) -> list[str]:
+        names = [name for name in text.split(",") if name]
+        unknown = [name for name in names if name not in choices]
+        if unknown or not names:
+            raise argparse.ArgumentTypeError(f"unknown {', '.join(map(repr, unknown)) or 'empty list'}; choose "
+                                             f"comma-separated names from {', '.join(choices)}")
+        return names
+
+    parse.invalid_examples = lambda folder: ["not-a-choice", f"{choices[0]},not-a-choice", ","]
+    return parse
+
+
+def name_equals_folder(choices: Sequence[str]) -> Callable[[str], tuple[str, Path]]:
+    """``NAME=DIR``: a name of ``choices`` and an existing folder."""
+    def parse(text: str) -> tuple[str, Path]:
+        name, equals, folder = text.partition("=")
+        if not equals or not folder:
+            raise argparse.ArgumentTypeError(f"expected NAME=DIR, got {text!r}")
+        if name not in choices:
+            raise argparse.ArgumentTypeError(f"unknown {name!r} in {text!r}; choose from {', '.join(choices)}")
+        return name, input_dir(folder)
+
+    parse.invalid_examples = lambda folder: ["no-equals-sign", f"not-a-choice={folder}",
+                                             f"{choices[0]}={folder / 'missing'}", f"{choices[0]}="]
+    return parse
 
 
 def _check_suffix(text: str, suffixes: tuple[str, ...]) -> None:

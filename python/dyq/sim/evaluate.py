@@ -67,10 +67,23 @@ def checkpoint_label(checkpoint: str | os.PathLike) -> str:
     return str(path.relative_to(Path.cwd())) if path.is_relative_to(Path.cwd()) else str(path)
 
 
+CHECKPOINT_FILES = ("policy.json", "model.safetensors")
+
+
+def check_checkpoint_files(checkpoint: Path, task: str) -> None:
+    """A command-line mistake (one line) if ``checkpoint`` lacks a file of a trained policy."""
+    from ..apps.usage import UsageError
+
+    for name in CHECKPOINT_FILES:
+        if not (checkpoint / name).is_file():
+            raise UsageError(f"checkpoint {checkpoint} has no {name}: train one with `dyq train {task}` "
+                             "or pass --checkpoint")
+
+
 def checkpoint_digest(checkpoint: str | os.PathLike) -> str:
     """First 12 hex digits of the SHA-256 of the checkpoint's weights and config."""
     h = hashlib.sha256()
-    for name in ("policy.json", "model.safetensors"):
+    for name in CHECKPOINT_FILES:
         h.update((Path(checkpoint) / name).read_bytes())
     return h.hexdigest()[:12]
 
@@ -379,9 +392,9 @@ def default_checkpoint(task: str) -> Path:
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    from ..apps.usage import output_dir, output_file, positive_int
+    from ..apps.usage import comma_list, name_equals_folder, output_dir, output_file, positive_int
 
-    parser.add_argument("--tasks", default=None,
+    parser.add_argument("--tasks", type=comma_list(envs.ALL_TASKS), default=None,
                         help="comma-separated task names (default: lift,pick_place_can,square)")
     parser.add_argument("--suite", choices=sorted(envs.LIBERO_TASKS), default=None,
                         help=f"a LIBERO suite (in the `libero` environment): its task, configs {SUITE_CONFIGS} "
@@ -394,7 +407,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--seed0", type=int, default=0,
                         help="first seed (default 0); a LIBERO suite's seeds from 500 on are perturbed states: "
                              "write those rows to their own --out and --table")
-    parser.add_argument("--checkpoint", action="append", default=[], metavar="TASK=DIR",
+    parser.add_argument("--checkpoint", type=name_equals_folder(envs.ALL_TASKS), action="append", default=[],
+                        metavar="TASK=DIR",
                         help="policy checkpoint for a task (default: the one that ships with dyq)")
     parser.add_argument("--workers", type=positive_int, default=max(1, (os.cpu_count() or 1)))
     parser.add_argument("--cache", type=output_dir, default=DEFAULT_CACHE)
@@ -408,28 +422,31 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def main(args: argparse.Namespace) -> int:
+    from ..apps.usage import UsageError
     from .profile import calibrated_run_config
     from .rollout import CALIBRATED, run_config
 
     if args.suite and args.tasks:
         raise ValueError("give --suite or --tasks, not both")
-    tasks = [args.suite] if args.suite else [t for t in (args.tasks or "lift,pick_place_can,square").split(",") if t]
+    tasks = [args.suite] if args.suite else args.tasks or ["lift", "pick_place_can", "square"]
     configs = [c for c in (args.configs or (SUITE_CONFIGS if args.suite else "fp32,w4a16,w4a8,w4a4,w4a2,dyq")).split(",") if c]
     if args.episodes is None:
         args.episodes = SUITE_EPISODES if args.suite else 50
-    for task in tasks:
-        envs.spec(task)
     for config in configs:
         if config != CALIBRATED:
-            run_config(config)
+            try:
+                run_config(config)
+            except ValueError as error:
+                raise UsageError(f"--configs: {error}") from None
     if args.episodes < 1:
         raise ValueError(f"--episodes must be >= 1, got {args.episodes}")
     checkpoints = {task: default_checkpoint(task) for task in tasks}
-    for item in args.checkpoint:
-        task, _, directory = item.partition("=")
-        if task not in tasks or not directory:
-            raise ValueError(f"--checkpoint must be TASK=DIR for one of {tasks}, got {item!r}")
-        checkpoints[task] = Path(directory)
+    for task, directory in args.checkpoint:
+        if task not in tasks:
+            raise ValueError(f"--checkpoint {task}={directory}: {task!r} is not evaluated (tasks: {tasks})")
+        checkpoints[task] = directory
+    for task in tasks:
+        check_checkpoint_files(checkpoints[task], task)
     digests = {task: checkpoint_digest(checkpoints[task]) for task in tasks}
     # Each task's configurations, dyq_calibrated from that task's calibration of this very checkpoint.
     resolved = {task: {name: (calibrated_run_config(task, checkpoint_digest=digests[task]) if name == CALIBRATED

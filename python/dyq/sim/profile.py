@@ -63,7 +63,8 @@ from ..analysis import (
 )
 from ..analysis.sensitivity import sensitivity
 from . import envs
-from .evaluate import _jsonable, _read_episode, _write_episode, checkpoint_digest, default_checkpoint
+from .evaluate import (_jsonable, _read_episode, _write_episode, check_checkpoint_files, checkpoint_digest,
+                       default_checkpoint)
 from .rollout import PolicyRunner, RunConfig, run_episode
 
 CALIBRATION_SEEDS = range(5000, 6000)
@@ -857,10 +858,7 @@ def main(args: argparse.Namespace) -> int:
     if args.command == "profile":
         _budget(args)  # refuse a bad budget before loading anything
     checkpoint = args.checkpoint or default_checkpoint(args.task)
-    for name in ("policy.json", "model.safetensors"):
-        if not (checkpoint / name).is_file():
-            raise usage.UsageError(f"checkpoint {checkpoint} has no {name}: train one with `dyq train {args.task}` "
-                                   "or pass --checkpoint")
+    check_checkpoint_files(checkpoint, args.task)
     digest = checkpoint_digest(checkpoint)
     if args.command == "calibrate":
         _read_profile(args, digest)  # refuse a missing or foreign profile before loading anything
