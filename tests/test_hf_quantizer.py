@@ -57,3 +57,23 @@ def test_the_config_has_room_for_later_options_and_checks_them():
         dyq.DyQConfig(rotation="hadamard")
     with pytest.raises(ValueError, match="group_size must be one of"):
         dyq.DyQConfig(group_size=100)
+
+
+def test_a_gpt2_with_conv1d_layers_quantizes_on_load_and_round_trips(tmp_path):
+    config = transformers.GPT2Config(vocab_size=256, n_embd=128, n_layer=1, n_head=4, n_positions=32)
+    torch.manual_seed(0)
+    transformers.GPT2LMHeadModel(config).save_pretrained(tmp_path / "float")
+    model = transformers.GPT2LMHeadModel.from_pretrained(tmp_path / "float",
+                                                         quantization_config=dyq.DyQConfig(group_size=64, act_bits=8))
+    block = model.transformer.h[0]
+    layers = [block.attn.c_attn, block.attn.c_proj, block.mlp.c_fc, block.mlp.c_proj]
+    assert all(isinstance(m, dyq.DyQLinear) for m in layers) and type(model.lm_head) is torch.nn.Linear
+    reference = transformers.GPT2LMHeadModel.from_pretrained(tmp_path / "float")
+    dyq.quantize_model(reference, group_size=64, flag=dyq.PrecisionFlag(8))
+    with torch.no_grad():
+        assert torch.equal(model(IDS).logits, reference(IDS).logits)
+    model.save_pretrained(tmp_path / "dyq")
+    loaded = transformers.GPT2LMHeadModel.from_pretrained(tmp_path / "dyq")
+    assert isinstance(loaded.transformer.h[0].mlp.c_fc, dyq.DyQLinear)
+    with torch.no_grad():
+        assert torch.equal(loaded(IDS).logits, model(IDS).logits)

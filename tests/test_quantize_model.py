@@ -304,3 +304,52 @@ def test_a_model_without_linear_layers_is_warned_about():
     with pytest.warns(UserWarning, match=r"Sequential holds no nn.Linear; nothing to convert"):
         report = dyq.quantize_model(torch.nn.Sequential(torch.nn.ReLU()))
     assert not report.converted
+
+
+def tiny_gpt2():
+    config = transformers.GPT2Config(vocab_size=300, n_embd=128, n_layer=2, n_head=4, n_positions=64)
+    torch.manual_seed(0)
+    return transformers.GPT2LMHeadModel(config).eval()
+
+
+def conv1d_type():
+    from transformers.pytorch_utils import Conv1D
+    return Conv1D
+
+
+@pytest.mark.parametrize("bits", (16, 8))
+def test_gpt2s_conv1d_layers_are_converted_like_linear_ones(bits):
+    """GPT-2 keeps its linear layers as transformers' Conv1D (weight [in, out]); each becomes a DyQLinear
+    of the transposed weight, checked against the float model with those weights dequantized."""
+    model = tiny_gpt2()
+    fake_quantized = copy.deepcopy(model)
+    with torch.no_grad():
+        for module in fake_quantized.modules():
+            if isinstance(module, conv1d_type()):
+                codes, scales = reference.quantize_weight(module.weight.t(), 128)
+                module.weight.copy_(reference.dequantize_weight(reference.pack_int4(codes), scales, 128).t())
+    report = dyq.quantize_model(model, flag=dyq.PrecisionFlag(bits))
+    assert len(report.converted) == 2 * 4 and list(report.skipped) == ["lm_head"]  # c_attn, c_proj, c_fc, c_proj
+    assert not any(isinstance(m, conv1d_type()) for m in model.modules())
+    attention = model.transformer.h[0].attn.c_attn
+    assert isinstance(attention, dyq.DyQLinear) and (attention.in_features, attention.out_features) == (128, 384)
+    ids = torch.randint(0, 300, (2, 12), generator=torch.Generator().manual_seed(1))
+    with torch.no_grad():
+        expected, logits = fake_quantized(ids).logits, model(ids).logits
+    rel = ((logits - expected).norm() / expected.norm()).item()
+    exact = 8e-3 if bf16_fallback(ids.numel(), 128, 128) else 1e-5
+    assert rel < {16: exact, 8: 0.02}[bits], rel
+
+
+def test_a_skipped_conv1d_stays_one_and_a_saved_gpt2_loads_into_a_fresh_one(tmp_path):
+    model = tiny_gpt2()
+    report = dyq.quantize_model(model, skip=("lm_head", "c_fc"), flag=dyq.PrecisionFlag(4))
+    assert sorted(report.skipped) == ["lm_head", "transformer.h.0.mlp.c_fc", "transformer.h.1.mlp.c_fc"]
+    assert isinstance(model.transformer.h[1].mlp.c_fc, conv1d_type())
+    dyq.save_quantized(model, tmp_path)
+    loaded = dyq.load_quantized(tiny_gpt2(), tmp_path)
+    assert isinstance(loaded.transformer.h[0].attn.c_attn, dyq.DyQLinear)
+    assert isinstance(loaded.transformer.h[0].mlp.c_fc, conv1d_type())
+    ids = torch.randint(0, 300, (1, 9), generator=torch.Generator().manual_seed(2))
+    with torch.no_grad():
+        assert torch.equal(loaded(ids).logits, model(ids).logits)

@@ -17,7 +17,7 @@ from transformers.quantizers.base import HfQuantizer
 from transformers.utils.quantization_config import QuantizationConfigMixin
 
 from ..control.flag import PrecisionFlag
-from .linear import DyQLinear
+from .linear import DyQLinear, is_transposed_linear, transposed_linear_to_linear
 from .precision import check_bits, check_group_size
 from .quantize import _matches, quantize_model
 from .serialization import WEIGHT_METHOD_NAMES, WEIGHT_METHODS
@@ -55,7 +55,7 @@ class DyQHfQuantizer(HfQuantizer):
     def _targets(self, model: nn.Module):
         skip = tuple(self.quantization_config.modules_to_not_convert)
         return [(name, module) for name, module in model.named_modules()
-                if type(module) is nn.Linear and not _matches(name, skip)]
+                if (type(module) is nn.Linear or is_transposed_linear(module)) and not _matches(name, skip)]
 
     def _process_model_before_weight_loading(self, model, **kwargs):
         if not self.pre_quantized:
@@ -63,9 +63,20 @@ class DyQHfQuantizer(HfQuantizer):
         config = self.quantization_config
         method = next(m for m, saved in WEIGHT_METHOD_NAMES.items() if saved == config.weight_method)
         for _, linear in self._targets(model):  # shells of the saved shape; the load fills them
+            if is_transposed_linear(linear):
+                transposed_linear_to_linear(linear)
             DyQLinear.convert_in_place(linear, group_size=config.group_size, act_bits=config.act_bits,
                                        quantize=False)
             linear.weight_method = method
+        # Some architectures' weight initialization, which transformers runs after loading, reaches from a
+        # parent into its children's weights (GPT-2 rescales c_proj.weight from its attention and MLP blocks),
+        # and a DyQLinear has no weight. A parent that holds no tensor of its own is marked initialized: the
+        # checkpoint holds its DyQLinear children's tensors, and its other children are initialized apart.
+        for parent in model.modules():
+            if (any(isinstance(child, DyQLinear) for child in parent.children())
+                    and next(parent.parameters(recurse=False), None) is None
+                    and next(parent.buffers(recurse=False), None) is None):
+                parent._is_hf_initialized = True
 
     def _process_model_after_weight_loading(self, model, **kwargs):
         config = self.quantization_config

@@ -234,3 +234,29 @@ class DyQLinear(nn.Module):
             precision += f", min_act_bits={self.min_act_bits}"
         return (f"in_features={self.in_features}, out_features={self.out_features}, bias={self.bias is not None}, "
                 f"weight=int4, group_size={self.group_size}, {precision}")
+
+
+# -- transformers' Conv1D --------------------------------------------------------------------------------------
+# GPT-2 and the models built on it (DecisionTransformer, ImageGPT) keep their linear layers as
+# transformers.pytorch_utils.Conv1D: y = x W + b with W stored [in, out], the transpose of nn.Linear's.
+def is_transposed_linear(module: nn.Module) -> bool:
+    """Whether ``module`` is a transformers ``Conv1D`` (a linear layer whose weight is stored [in, out])."""
+    kind = type(module)
+    return (kind.__name__ == "Conv1D" and kind.__module__.startswith("transformers.")
+            and isinstance(getattr(module, "weight", None), torch.Tensor) and module.weight.dim() == 2)
+
+
+def transposed_linear_to_linear(module: nn.Module) -> nn.Linear:
+    """Turn a transformers ``Conv1D`` itself into the ``nn.Linear`` it computes (its class changes, its weight
+    is transposed), so that every reference to it sees the new layer; ``quantize_model`` then converts it like
+    any other. Returns it."""
+    if not is_transposed_linear(module):
+        raise TypeError(f"module must be a transformers Conv1D, got {type(module).__name__}")
+    weight = module.weight
+    in_features, out_features = weight.shape
+    module.__class__ = nn.Linear
+    module.weight = nn.Parameter(weight.detach().t().contiguous(), requires_grad=weight.requires_grad)
+    module.in_features, module.out_features = in_features, out_features
+    for name in ("nf", "nx"):
+        module.__dict__.pop(name, None)
+    return module

@@ -12,7 +12,7 @@ import torch
 from torch import nn
 
 from ..control.flag import PrecisionFlag
-from .linear import DyQLinear
+from .linear import DyQLinear, is_transposed_linear, transposed_linear_to_linear
 from .precision import check_bits, check_group_size
 from . import reference
 from .weight_methods import (CALIBRATED_METHODS, DEFAULT_CALIBRATION_BITS, awq_prepare, check_calibration_bits,
@@ -104,7 +104,8 @@ class QuantizationReport:
 def quantize_model(model: nn.Module, group_size: int = 128, skip: Iterable[SkipPattern] = DEFAULT_SKIP,
                    act_bits: int = 16, flag: PrecisionFlag | None = None, method: str = "rtn", calibration=None,
                    calibration_bits=DEFAULT_CALIBRATION_BITS, min_act_bits=None) -> QuantizationReport:
-    """Convert every ``nn.Linear`` of ``model`` in place to a :class:`DyQLinear` with INT4 weights.
+    """Convert every ``nn.Linear`` of ``model`` in place to a :class:`DyQLinear` with INT4 weights (and
+    every transformers ``Conv1D``, the transposed linear layer of GPT-2 and the models built on it).
 
     Args:
         model: any module, e.g. a Hugging Face ``LlamaForCausalLM`` or a BERT encoder, or an ``nn.Linear``.
@@ -167,7 +168,7 @@ def quantize_model(model: nn.Module, group_size: int = 128, skip: Iterable[SkipP
         if isinstance(module, DyQLinear):
             if name not in report.already_quantized:
                 report.already_quantized.append(name)
-        elif isinstance(module, nn.Linear):
+        elif isinstance(module, nn.Linear) or is_transposed_linear(module):
             names.setdefault(id(module), []).append(name)
             modules[id(module)] = module
 
@@ -195,6 +196,10 @@ def quantize_model(model: nn.Module, group_size: int = 128, skip: Iterable[SkipP
         example = f" (such as {converted_names[0]!r})" if converted_names else ""
         raise ValueError(f"min_act_bits: {idle} match no layer that is converted{example}; patterns are matched "
                          "like skip's, against each layer's full name and its last component")
+
+    for key, module in modules.items():  # a Conv1D to be converted becomes the nn.Linear it computes
+        if is_transposed_linear(module) and skipped_as(key) is None:
+            transposed_linear_to_linear(module)
 
     channel_weight: dict[int, torch.Tensor | None] = {}
     hessians: dict[int, torch.Tensor] = {}

@@ -24,7 +24,7 @@ import torch
 from torch import nn
 
 from ..control.flag import PrecisionFlag
-from .linear import DyQLinear
+from .linear import DyQLinear, is_transposed_linear, transposed_linear_to_linear
 from .precision import check_bits, check_group_size
 
 CONFIG_NAME = "dyq_config.json"
@@ -142,6 +142,8 @@ def prepare_quantized_layers(model: nn.Module, state: dict[str, Any], flag: Prec
         module = found.get(name)
         if isinstance(module, DyQLinear):
             continue
+        if is_transposed_linear(module):
+            transposed_linear_to_linear(module)
         if not isinstance(module, nn.Linear):
             raise ValueError(f"the saved model has a DyQLinear at {name!r}, but this model has "
                              f"{type(module).__name__ if module is not None else 'nothing'} there")
