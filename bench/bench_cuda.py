@@ -1,10 +1,11 @@
-"""Time dyq's CUDA GEMM paths against cuBLAS bf16 and torch's INT4 weight-only kernel.
+"""Time dyq's CUDA GEMM paths against cuBLAS bf16, torch's INT4 weight-only kernel and bitsandbytes.
 
     python bench/bench_cuda.py [--quick] [--out bench/results]
 
 For every (N, K) of the Llama-2-7B linear layers and every M, times `torch.ops.dyq.gemm` at 2, 4, 8
 and 16 activation bits, `torch.matmul` in bf16 (cuBLAS) and `torch._weight_int4pack_mm` (where this
-torch has it) with CUDA events: warm-up, then the median of repeated runs, each run on one of several
+torch has it), bitsandbytes' NF4 and LLM.int8() layers (where it is installed:
+bench/bitsandbytes_peers.py) with CUDA events: warm-up, then the median of repeated runs, each run on one of several
 weight copies in rotation so that M = 1 measures DRAM, not L2. Reports, at M = 1, the achieved
 bandwidth (bytes of weights + scales + activations + output over time) as a percentage of a measured
 device-to-device copy, and at M = 512 the rate in TOPS. Prints a table and writes
@@ -23,6 +24,9 @@ import torch
 
 import dyq
 from dyq.results import cuda_median_ms, environment, write_json
+
+from bitsandbytes_peers import INPUT_DTYPES as BITSANDBYTES_INPUT_DTYPES, PEERS as BITSANDBYTES_PEERS, \
+    bitsandbytes_layers, bitsandbytes_version
 
 SHAPES = ((4096, 4096), (12288, 4096), (22016, 4096), (4096, 11008))  # (N, K): qkv/o, fused qkv, gate+up, down
 ROWS = (1, 4, 8, 16, 64, 256, 512)
@@ -84,6 +88,9 @@ def bench_shape(n: int, k: int, rows, warmup: int, repeats: int, copy_gbs: float
             int4_layers = [torch_int4_layer(w) for _ in range(copies)]
         except RuntimeError as err:  # layout requirements differ between torch versions
             print(f"  torch INT4 weight-only kernel unavailable here: {err}")
+    bnb_layers = [bitsandbytes_layers(w) for _ in range(copies)]
+    if isinstance(bnb_layers[0], str):
+        bnb_layers = []
     for m in rows:
         x = torch.randn(m, k, device="cuda").to(torch.bfloat16)
         entry = {"n": n, "k": k, "m": m, "group_size": GROUP_SIZE, "ms": {}}
@@ -96,6 +103,9 @@ def bench_shape(n: int, k: int, rows, warmup: int, repeats: int, copy_gbs: float
             fn = Rotating(lambda i: torch._weight_int4pack_mm(x, int4_layers[i][0], GROUP_SIZE, int4_layers[i][1]),
                           copies)
             entry["ms"]["torch_int4_weight_only"] = cuda_median_ms(fn, warmup=warmup, repeats=repeats)
+        for peer in BITSANDBYTES_PEERS if bnb_layers else ():
+            fn = Rotating(lambda i, p=peer, xp=x.to(BITSANDBYTES_INPUT_DTYPES[peer]): bnb_layers[i][p](xp), copies)
+            entry["ms"][peer] = cuda_median_ms(fn, warmup=warmup, repeats=repeats)
         dyq_bytes = qweight.numel() + scales.numel() * 4 + x.numel() * 2 + m * n * 2
         if m == 1:
             entry["dyq_bandwidth_pct_of_copy"] = {
@@ -111,7 +121,7 @@ def bench_shape(n: int, k: int, rows, warmup: int, repeats: int, copy_gbs: float
         print("  ".join(row), flush=True)
 
 
-COLUMNS = tuple(f"dyq_a{bits}" for bits in dyq.VALID_BITS) + ("cublas_bf16", "torch_int4_weight_only")
+COLUMNS = tuple(f"dyq_a{bits}" for bits in dyq.VALID_BITS) + ("cublas_bf16", "torch_int4_weight_only") + BITSANDBYTES_PEERS
 
 
 def graph_flag_switching(m: int, n: int, k: int, layers: int, warmup: int, repeats: int) -> dict:
@@ -182,7 +192,12 @@ def main() -> int:
     results, table = [], []
     shapes = SHAPES[:1] if args.quick else SHAPES
     name = re.sub(r"[^A-Za-z0-9]+", "_", info["gpu"]).strip("_").lower()
-    report = {"benchmark": "cuda", "environment": info, "copy_gbs": copy_gbs, "warmup": warmup,
+    probe = bitsandbytes_layers(torch.randn(256, 256, device="cuda").to(torch.bfloat16))
+    bitsandbytes = {"version": bitsandbytes_version(), "peers": list(BITSANDBYTES_PEERS) if isinstance(probe, dict) else [],
+                    "unavailable": probe if isinstance(probe, str) else None}
+    print(f"bitsandbytes: {bitsandbytes['version'] or 'not installed'}"
+          + (f" ({bitsandbytes['unavailable']})" if bitsandbytes["unavailable"] else ""))
+    report = {"benchmark": "cuda", "environment": info, "bitsandbytes": bitsandbytes, "copy_gbs": copy_gbs, "warmup": warmup,
               "repeats": repeats, "group_size": GROUP_SIZE, "shapes": [list(s) for s in shapes],
               "rows": list(ROWS), "results": results}
     for n, k in shapes:

@@ -2,7 +2,9 @@
 
 Peers: torch's fp32 and bf16 ``nn.Linear`` (oneDNN), its INT4 weight-only kernel
 (``_weight_int4pack_mm_for_cpu``, bf16 input, group 128) and its dynamic INT8 linear
-(``torch.ao.quantization.quantize_dynamic``, fp32 input). dyq takes fp32 input, group 128.
+(``torch.ao.quantization.quantize_dynamic``, fp32 input); with ``--bitsandbytes``, bitsandbytes' NF4 and
+LLM.int8() layers too (bf16 and fp16 input; bench/bitsandbytes_peers.py), whose CPU path is many times slower than
+the others. dyq takes fp32 input, group 128.
 
 Each (shape, M) is timed hot (one copy of the weights, resident in the caches as far as they fit) and cold (as
 many copies as fill four times the last-level cache, called in turn, so that every call reads its weights from
@@ -45,6 +47,9 @@ import torch.nn.functional as F
 import dyq
 from dyq.core.host_memory import huge_page_empty
 from dyq.results import environment, interleaved_median_ms, median_ms, print_table, write_json
+
+from bitsandbytes_peers import INPUT_DTYPES as BITSANDBYTES_INPUT_DTYPES, PEERS as BITSANDBYTES_PEERS, \
+    bitsandbytes_layers, bitsandbytes_version
 
 GROUP_SIZE = 128
 LLAMA_7B_SHAPES = [(4096, 4096), (11008, 4096), (4096, 11008)]  # (N, K): attention, MLP up/gate, MLP down
@@ -138,7 +143,20 @@ def int4_torch_layer(weight: torch.Tensor):
             packed.nbytes + scale_and_zeros.nbytes)
 
 
-def peer_layers(linear: torch.nn.Linear) -> dict:
+def bitsandbytes_peer(bf16: torch.Tensor, peer: str) -> tuple:
+    """(factory of a fresh copy, bytes of its weights and statistics) of one bitsandbytes peer."""
+    def make():
+        return bitsandbytes_layers(bf16)[peer]
+
+    layer = make()
+    state = getattr(layer.weight, "quant_state", None)
+    statistics = [getattr(layer.weight, "SCB", None)]
+    if state is not None:  # NF4's absmax, itself quantized in blocks, and the state of that
+        statistics += [state.absmax, getattr(getattr(state, "state2", None), "absmax", None)]
+    return make, layer.weight.nbytes + sum(t.nbytes for t in statistics if isinstance(t, torch.Tensor))
+
+
+def peer_layers(linear: torch.nn.Linear, bitsandbytes: bool = False) -> dict:
     """name -> (factory of a fresh copy, bytes of its weights, input dtype)."""
     weight = linear.weight.detach()
     bf16 = weight.bfloat16()
@@ -147,18 +165,21 @@ def peer_layers(linear: torch.nn.Linear) -> dict:
         int8 = torch.ao.quantization.quantize_dynamic(torch.nn.Sequential(linear), {torch.nn.Linear},
                                                       dtype=torch.qint8)
     int4_call, int4_bytes = int4_torch_layer(weight)
-    return {
+    peers = {
         "fp32": (lambda: (lambda w: lambda x: F.linear(x, w))(weight.clone()), weight.nbytes, torch.float32),
         "bf16": (lambda: (lambda w: lambda x: F.linear(x, w))(bf16.clone()), bf16.nbytes, torch.bfloat16),
         "int8_dynamic": (lambda: copy.deepcopy(int8), weight.numel() + 4 * weight.shape[0], torch.float32),
         "int4_torch": (lambda: int4_torch_layer(weight)[0], int4_bytes, torch.bfloat16),
     }
+    for peer in BITSANDBYTES_PEERS if bitsandbytes else ():
+        peers[peer] = (*bitsandbytes_peer(bf16, peer), BITSANDBYTES_INPUT_DTYPES[peer])
+    return peers
 
 
-def time_shape(n: int, k: int, batches, modes, repeats: int, cache_bytes: int) -> list[dict]:
+def time_shape(n: int, k: int, batches, modes, repeats: int, cache_bytes: int, bitsandbytes: bool = False) -> list[dict]:
     torch.manual_seed(0)
     linear = torch.nn.Linear(k, n, bias=False)
-    peers = peer_layers(linear)
+    peers = peer_layers(linear, bitsandbytes)
     layer = dyq.DyQLinear.from_linear(linear, group_size=GROUP_SIZE)
     dyq_bytes = layer.qweight.nbytes + layer.scales.nbytes
     results = []
@@ -213,14 +234,15 @@ def time_shape(n: int, k: int, batches, modes, repeats: int, cache_bytes: int) -
 
 
 def print_results(threads: int, stream_gbps: float, results: list[dict]) -> None:
-    columns = PEERS + [f"w4a{b}" for b in BITS]
+    extra = [p for p in BITSANDBYTES_PEERS if results and p in results[0]["median_ms"]]
+    columns = PEERS + extra + [f"w4a{b}" for b in BITS]
     rows = []
     for r in results:
         t = r["median_ms"]
         ratio = lambda b: f"{t['bf16'] / t[f'w4a{b}']:.2f}x"  # noqa: E731
         rows.append([r["m"], f"{r['n']}x{r['k']}", r["mode"]] + [f"{t[c]:.3f}" for c in columns]
                     + [ratio(b) for b in BITS])
-    headers = ["M", "NxK", "weights"] + ["fp32", "bf16", "int8 dyn", "int4 torch"] \
+    headers = ["M", "NxK", "weights"] + ["fp32", "bf16", "int8 dyn", "int4 torch"] + [p.replace("_", " ") for p in extra] \
         + [f"W4A{b}" for b in BITS] + [f"bf16/A{b}" for b in BITS]
     print_table(headers, rows, title=f"\n{threads} thread(s): median ms, and torch bf16 time over dyq's")
     rows = []
@@ -266,6 +288,8 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=15)
     parser.add_argument("--out", default="linear_cpu.json")
     parser.add_argument("--readme", metavar="JSON", help="print the README's table from a results file, then exit")
+    parser.add_argument("--bitsandbytes", action="store_true",
+                        help="also time bitsandbytes' NF4 and LLM.int8() layers (slow on the CPU)")
     args = parser.parse_args()
     if args.readme:
         print(readme_table(json.loads(Path(args.readme).read_text())))
@@ -276,13 +300,18 @@ def main() -> None:
     if args.shape:
         shapes = [tuple(int(v) for v in shape.lower().split("x")) for shape in args.shape]
     cache_bytes = last_level_cache_bytes()
+    if args.bitsandbytes:
+        probe = bitsandbytes_layers(torch.randn(8, 64).bfloat16())
+        if isinstance(probe, str):
+            parser.error(f"--bitsandbytes: {probe}")
 
     runs = []
     for threads in args.threads:
         torch.set_num_threads(threads)
         load_before = os.getloadavg()
         stream_gbps = stream_read_gbps(args.repeats)
-        results = [r for n, k in shapes for r in time_shape(n, k, batches, args.modes, args.repeats, cache_bytes)]
+        results = [r for n, k in shapes
+                   for r in time_shape(n, k, batches, args.modes, args.repeats, cache_bytes, args.bitsandbytes)]
         print_results(threads, stream_gbps, results)
         load_after = os.getloadavg()
         print(f"load average (1, 5, 15 min): {load_before} before, {load_after} after")
@@ -292,7 +321,8 @@ def main() -> None:
     payload = {"benchmark": "linear_cpu", "environment": {**environment(), "cpu_flags": cpu_flags(),
                                                           "last_level_cache_bytes": cache_bytes,
                                                           "dyq_cpu_paths": dyq.cpu_info()["runnable"]},
-               "group_size": GROUP_SIZE, "peers": PEERS,
+               "group_size": GROUP_SIZE, "peers": PEERS + (list(BITSANDBYTES_PEERS) if args.bitsandbytes else []),
+               "bitsandbytes": bitsandbytes_version() if args.bitsandbytes else None,
                "timing": "interleaved: each round calls every layer once, in a shuffled order; hot calls each "
                          "after an untimed one; M = 1 cold one peer after another, dyq's widths in turns",
                "runs": runs}

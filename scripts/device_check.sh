@@ -6,6 +6,7 @@
 #
 #   pip download cmeel-eigen -d build/device_wheels    # beforehand, where the registry is reachable:
 #                                                      # Eigen's headers, when the GPU machine has none
+#   pip download bitsandbytes --no-deps -d build/device_wheels   # bench_cuda.py's bitsandbytes peers
 #   OUT=/some/dir bash scripts/device_check.sh         # on the GPU machine
 #
 # DYQ_CUDA_ARCHS (default 90a-real: H100 / H200; 80-real for A100, 89-real for Ada) picks what nvcc builds,

@@ -19,7 +19,8 @@ fi
 .venv/bin/python -m pip install -q --upgrade pip
 # torch is pinned: any looser spec may pull several GB of CUDA wheels.
 .venv/bin/python -m pip install -q "torch==2.13.0" numpy "setuptools>=77" ninja \
-  pytest hypothesis expecttest "transformers>=4.40" matplotlib safetensors h5py tqdm imageio
+  pytest hypothesis expecttest "transformers>=4.40" matplotlib safetensors h5py tqdm imageio \
+  "bitsandbytes>=0.45"  # a peer of the benchmarks, tested on the CPU
 # The simulator for the closed loop (the `sim` extra): robosuite needs mujoco 3.3.x, not 4.
 .venv/bin/python -m pip install -q "robosuite==1.5.2" "mujoco==3.3.7"
 # Built against the torch installed above, hence no build isolation (warm rebuilds; a plain

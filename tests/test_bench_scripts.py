@@ -77,3 +77,54 @@ def test_bench_policy_step_times_a_control_step_at_every_width(tmp_path):
     assert memory["bf16"] == 2 * linear_weights + other_fp32 // 2
     for base in expected_bases:
         assert memory[f"dyq/{base}"] == int4_bytes + other_fp32 // 4 * (2 if base == "bf16" else 4)
+
+
+def test_bench_cuda_without_a_gpu_says_so_and_exits_cleanly():
+    if torch_cuda_available():
+        pytest.skip("a GPU is here: bench_cuda.py runs in scripts/device_check.sh")
+    out = subprocess.run([sys.executable, str(ROOT / "bench" / "bench_cuda.py"), "--quick"], check=True, cwd=ROOT,
+                         capture_output=True, text=True, timeout=300).stdout
+    assert "no CUDA device; nothing to time" in out
+
+
+def torch_cuda_available() -> bool:
+    import torch
+
+    return torch.cuda.is_available()
+
+
+def test_bitsandbytes_peers_compute_the_layer_they_quantize():
+    """The peers of bench_cuda.py and bench_linear.py --bitsandbytes, on the CPU: each computes x W^T within
+    its format's error (NF4 is 4-bit, LLM.int8() 8-bit), on its own input dtype."""
+    pytest.importorskip("bitsandbytes")
+    import torch
+
+    sys.path.insert(0, str(ROOT / "bench"))
+    try:
+        from bitsandbytes_peers import INPUT_DTYPES, PEERS, bitsandbytes_layers
+    finally:
+        sys.path.pop(0)
+    generator = torch.Generator().manual_seed(3)
+    weight = (torch.randn(192, 256, generator=generator) * 0.02).bfloat16()
+    x = torch.randn(5, 256, generator=generator)
+    layers = bitsandbytes_layers(weight)
+    assert set(layers) == set(PEERS), layers
+    expected = x.double() @ weight.double().T
+    for peer, bound in (("bnb_nf4", 0.15), ("bnb_int8", 0.02)):
+        with torch.inference_mode():
+            y = layers[peer](x.to(INPUT_DTYPES[peer]))
+        assert y.shape == (5, 192) and y.dtype == INPUT_DTYPES[peer]
+        rel = ((y.double() - expected).norm() / expected.norm()).item()
+        assert 1e-4 < rel < bound, (peer, rel)  # quantized (not the float layer), and within the format's error
+
+
+def test_bench_linear_times_bitsandbytes_when_asked(tmp_path):
+    pytest.importorskip("bitsandbytes")
+    out = tmp_path / "linear.json"
+    run_bench("bench_linear.py", "--shape", "256x512", "--batches", "1", "--threads", "1", "--modes", "hot",
+              "--repeats", "2", "--bitsandbytes", "--out", str(out))
+    result = json.loads(out.read_text())
+    assert result["peers"][-2:] == ["bnb_nf4", "bnb_int8"] and result["bitsandbytes"]
+    (r,) = result["runs"][0]["results"]
+    assert r["median_ms"]["bnb_nf4"] > 0 and r["median_ms"]["bnb_int8"] > 0
+    assert 0 < r["weight_bytes"]["bnb_nf4"] < r["weight_bytes"]["bnb_int8"] < r["weight_bytes"]["bf16"]

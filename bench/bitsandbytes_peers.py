@@ -1,0 +1,48 @@
+"""bitsandbytes' quantized linear layers as benchmark peers: the two that Hugging Face users load with
+``load_in_4bit`` (NF4, blocks of 64, bf16 compute) and ``load_in_8bit`` (LLM.int8(), outliers above 6.0 kept in
+16 bits), built from one bf16 weight on its device. bitsandbytes is optional: without it, or where it cannot
+build a layer, the benchmark goes on without these columns and records why.
+"""
+from __future__ import annotations
+
+import os
+from typing import Callable
+
+import torch
+
+PEERS = ("bnb_nf4", "bnb_int8")
+# Each peer's own input dtype: NF4 computes in bf16 here; LLM.int8() quantizes fp16 (it casts a bf16 input).
+INPUT_DTYPES = {"bnb_nf4": torch.bfloat16, "bnb_int8": torch.float16}
+INT8_OUTLIER_THRESHOLD = 6.0  # transformers' BitsAndBytesConfig default (llm_int8_threshold)
+
+
+def bitsandbytes_version() -> str | None:
+    try:
+        import bitsandbytes
+    except ImportError:
+        return None
+    return bitsandbytes.__version__
+
+
+def bitsandbytes_layers(weight: torch.Tensor) -> dict[str, Callable[[torch.Tensor], torch.Tensor]] | str:
+    """{peer: layer} for ``weight`` ([N, K], bf16) on ``weight``'s device, or why there are none."""
+    # No downloads at run time: bitsandbytes' CPU backend would otherwise ask the Hub for a kernel.
+    os.environ.setdefault("HF_HUB_OFFLINE", "1")
+    try:
+        import bitsandbytes as bnb
+    except ImportError:
+        return "bitsandbytes is not installed"
+    n, k = weight.shape
+    device = weight.device
+    try:
+        nf4 = bnb.nn.Linear4bit(k, n, bias=False, compute_dtype=torch.bfloat16, quant_type="nf4")
+        nf4.weight = bnb.nn.Params4bit(weight.detach().to("cpu", torch.bfloat16).clone(), requires_grad=False,
+                                       quant_type="nf4")
+        int8 = bnb.nn.Linear8bitLt(k, n, bias=False, has_fp16_weights=False, threshold=INT8_OUTLIER_THRESHOLD)
+        int8.weight = bnb.nn.Int8Params(weight.detach().to("cpu", torch.bfloat16).clone(), requires_grad=False,
+                                        has_fp16_weights=False)
+        # Moving the layers to their device quantizes their weights.
+        layers = {"bnb_nf4": nf4.to(device).eval(), "bnb_int8": int8.to(device).eval()}
+    except (RuntimeError, NotImplementedError, ValueError) as error:
+        return f"bitsandbytes {bnb.__version__} cannot build its layers on {device.type}: {error}"
+    return layers
