@@ -12,10 +12,10 @@ pytest.importorskip("transformers")
 import dyq  # noqa: E402
 from dyq.sim import envs  # noqa: E402
 from dyq.sim import evaluate  # noqa: E402
-from dyq.sim.policy import PolicyConfig, TokenPolicy  # noqa: E402
+from dyq.sim.policy import TokenPolicy  # noqa: E402
 from dyq.sim.rollout import (InvertedLadderDispatcher, PolicyRunner, RunConfig, make_schedule, run_config,  # noqa: E402
                              run_episode)
-from dyq.sim.tokens import BinTokenizer  # noqa: E402
+from sim_helpers import untrained_policy  # noqa: E402
 
 TASK = "lift"
 HORIZON = 25
@@ -28,17 +28,7 @@ def env():
 
 @pytest.fixture(scope="module")
 def policy(env):
-    """An untrained policy whose tokenizers span the task's real observations (its actions vary)."""
-    rng = np.random.default_rng(0)
-    first = envs.observation_vector(TASK, envs.reset_env(env, 0))
-    observations = first + rng.normal(scale=0.05, size=(64, first.shape[0]))
-    actions = rng.uniform(-1, 1, size=(64, 7))
-    config = PolicyConfig(task=TASK, observation_names=envs.observation_names(TASK),
-                          observation_tokenizer=BinTokenizer.range_with_margin(observations).to_dict(),
-                          action_tokenizer=BinTokenizer.percentiles(actions).to_dict(),
-                          hidden_size=128, intermediate_size=256, layers=2, heads=2)
-    torch.manual_seed(0)
-    return TokenPolicy(config)
+    return untrained_policy(TASK, env)
 
 
 @pytest.fixture(scope="module")
