@@ -121,3 +121,14 @@ def test_misuse_is_reported(rng):
         layer.set_precision(5)
     with pytest.raises(TypeError, match="flag must be a dyq.PrecisionFlag"):
         layer.bind_flag(4)
+
+
+def test_a_linear_on_the_meta_device_is_refused_with_the_way_out():
+    meta = torch.nn.Linear(128, 8, device="meta")
+    with pytest.raises(ValueError, match="linear.weight is on the meta device"):
+        dyq.DyQLinear.from_linear(meta)
+    with pytest.raises(ValueError, match=r"convert_in_place\(linear, quantize=False\)"):
+        dyq.quantize_model(torch.nn.Sequential(meta))
+    assert type(meta) is torch.nn.Linear  # refused before the class changed
+    shell = dyq.DyQLinear.convert_in_place(meta, quantize=False)
+    assert shell.qweight.is_meta and shell.qweight.shape == (8, 64)

@@ -30,6 +30,10 @@ def _quantized_weight(linear: nn.Linear, group_size: int) -> tuple[torch.Tensor,
     """(qweight, scales) of ``linear.weight`` on its device; an odd in_features gets a zero column, which
     changes no group's scale and no product."""
     weight = linear.weight.detach()
+    if weight.is_meta:
+        raise ValueError("linear.weight is on the meta device and holds no values to quantize: load the float "
+                         "weights first, or make an empty layer for a quantized state dict with "
+                         "DyQLinear.convert_in_place(linear, quantize=False)")
     if weight.shape[1] % 2:
         weight = nn.functional.pad(weight, (0, 1))
     qweight, scales = ops.quantize_weight(weight.to("cpu"), group_size)
