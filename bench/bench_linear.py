@@ -49,7 +49,7 @@ from dyq.core.host_memory import huge_page_empty
 from dyq.results import environment, interleaved_median_ms, median_ms, print_table, write_json
 
 from bitsandbytes_peers import INPUT_DTYPES as BITSANDBYTES_INPUT_DTYPES, PEERS as BITSANDBYTES_PEERS, \
-    bitsandbytes_layers, bitsandbytes_version
+    bitsandbytes_layers, bitsandbytes_version, statistics_bytes
 
 GROUP_SIZE = 128
 LLAMA_7B_SHAPES = [(4096, 4096), (11008, 4096), (4096, 11008)]  # (N, K): attention, MLP up/gate, MLP down
@@ -149,11 +149,7 @@ def bitsandbytes_peer(bf16: torch.Tensor, peer: str) -> tuple:
         return bitsandbytes_layers(bf16)[peer]
 
     layer = make()
-    state = getattr(layer.weight, "quant_state", None)
-    statistics = [getattr(layer.weight, "SCB", None)]
-    if state is not None:  # NF4's absmax, itself quantized in blocks, and the state of that
-        statistics += [state.absmax, getattr(getattr(state, "state2", None), "absmax", None)]
-    return make, layer.weight.nbytes + sum(t.nbytes for t in statistics if isinstance(t, torch.Tensor))
+    return make, layer.weight.nbytes + statistics_bytes(layer)
 
 
 def peer_layers(linear: torch.nn.Linear, bitsandbytes: bool = False) -> dict:

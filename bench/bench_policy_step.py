@@ -27,6 +27,11 @@ their fp32 scales and the parts it does not convert (embeddings, norms, the LM h
     python bench/bench_policy_step.py                  # both configs
     python bench/bench_policy_step.py --config policy --prompt 256
     python bench/bench_policy_step.py --config policy --prompt 16 --repeats 1 --out /tmp/step.json  # smoke
+
+With ``--bitsandbytes`` the bf16 model is also timed with every linear layer but the LM head replaced by
+bitsandbytes' NF4 (``bnb_nf4``) and LLM.int8() (``bnb_int8``) layers, as ``load_in_4bit`` and
+``load_in_8bit`` would (bench/bitsandbytes_peers.py); their ``model_bytes`` count the statistics those layers
+keep outside their parameters.
 """
 from __future__ import annotations
 
@@ -43,6 +48,9 @@ import torch
 import dyq
 from dyq.results import environment, interleaved_median_ms, print_table, write_json
 from dyq.sim.policy import cache_keyword
+
+from bitsandbytes_peers import PEERS as BITSANDBYTES_PEERS, bitsandbytes_version, replace_linear_layers, \
+    statistics_bytes
 
 ACTION_TOKENS = 7
 BITS = [16, 8, 4, 2]
@@ -159,9 +167,11 @@ def step_breakdown(model, step) -> dict[str, float]:
 
 
 def model_bytes(model) -> int:
-    """Bytes of the model's parameters and buffers, each tensor once (a tied weight is one)."""
+    """Bytes of the model's parameters and buffers, each tensor once (a tied weight is one), and of the
+    statistics of its bitsandbytes layers."""
     tensors = {id(t): t for t in [*model.parameters(), *model.buffers()]}
-    return sum(t.numel() * t.element_size() for t in tensors.values())
+    peers = [m for m in model.modules() if type(m).__module__.startswith("bitsandbytes")]
+    return sum(t.numel() * t.element_size() for t in tensors.values()) + sum(statistics_bytes(m) for m in peers)
 
 
 def default_dyq_bases() -> list[str]:
@@ -173,7 +183,7 @@ def dyq_label(bits: int, base: str) -> str:
     return f"w4a{bits}/{base}"
 
 
-def time_config(name: str, prompt: int, repeats: int, dyq_bases: list[str]) -> dict:
+def time_config(name: str, prompt: int, repeats: int, dyq_bases: list[str], bitsandbytes: bool = False) -> dict:
     settings = CONFIGS[name]()
     fp32 = build_model(settings, prompt)
     parameters = sum(p.numel() for p in fp32.parameters())
@@ -181,11 +191,15 @@ def time_config(name: str, prompt: int, repeats: int, dyq_bases: list[str]) -> d
     quantized = {base: copy.deepcopy(bf16 if base == "bf16" else fp32) for base in dyq_bases}
     for model in quantized.values():
         dyq.quantize_model(model)
+    peers = {peer: copy.deepcopy(bf16) for peer in (BITSANDBYTES_PEERS if bitsandbytes else ())}
+    for peer, model in peers.items():
+        replace_linear_layers(model, peer)
     memory = {"fp32": model_bytes(fp32), "bf16": model_bytes(bf16),
-              **{f"dyq/{base}": model_bytes(model) for base, model in quantized.items()}}
+              **{f"dyq/{base}": model_bytes(model) for base, model in quantized.items()},
+              **{peer: model_bytes(model) for peer, model in peers.items()}}
     prompt_ids = torch.randint(3, settings["vocab_size"], (1, prompt))
     # Every model in turns (interleaved_median_ms), dyq's widths each set right before its call.
-    models = {"fp32": (None, fp32), "bf16": (None, bf16)}
+    models = {"fp32": (None, fp32), "bf16": (None, bf16), **{peer: (None, model) for peer, model in peers.items()}}
     for base, model in quantized.items():
         for bits in BITS:
             models[dyq_label(bits, base)] = ((lambda bits=bits, model=model: dyq.set_precision(model, bits)), model)
@@ -229,20 +243,23 @@ def main() -> None:
     parser.add_argument("--dyq-base", choices=["bf16", "fp32"], action="append",
                         help="dtype of the model dyq converts (repeatable; default: both on CPUs with bf16 dot "
                              "products, else fp32)")
+    parser.add_argument("--bitsandbytes", action="store_true",
+                        help="also time the bf16 model on bitsandbytes' NF4 and LLM.int8() layers")
     parser.add_argument("--out", default="policy_step_cpu.json")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     load_before = os.getloadavg()
     dyq_bases = list(dict.fromkeys(args.dyq_base)) if args.dyq_base else default_dyq_bases()
-    results = [time_config(name, args.prompt or DEFAULT_PROMPT[name], args.repeats, dyq_bases)
+    results = [time_config(name, args.prompt or DEFAULT_PROMPT[name], args.repeats, dyq_bases, args.bitsandbytes)
                for name in args.config or ["policy", "0.5b"]]
-    labels = ["fp32", "bf16"] + [dyq_label(b, base) for base in dyq_bases for b in BITS]
+    peers = list(BITSANDBYTES_PEERS) if args.bitsandbytes else []
+    labels = ["fp32", "bf16"] + peers + [dyq_label(b, base) for base in dyq_bases for b in BITS]
     rows = []
     for r in results:
         for label in labels:
             step, pre = r["step_ms"][label], r["prefill_ms"][label]
             share = r["dyq_gemm_share"].get(label)
-            memory = r["model_bytes"][label if label in ("fp32", "bf16") else "dyq/" + label.split("/")[1]]
+            memory = r["model_bytes"]["dyq/" + label.split("/")[1] if label.startswith("w4a") else label]
             rows.append([f"{r['config']} ({r['parameters'] / 1e6:.0f} M)", r["prompt_tokens"], label, f"{step:.1f}",
                          f"{pre:.1f}", f"{step - pre:.1f}", f"{r['step_ms']['fp32'] / step:.2f}x",
                          f"{r['step_ms']['bf16'] / step:.2f}x",
@@ -260,7 +277,8 @@ def main() -> None:
     load_after = os.getloadavg()
     print(f"load average (1, 5, 15 min): {load_before} before, {load_after} after")
     path = write_json(args.out, {"benchmark": "policy_step_cpu", "environment": environment(),
-                                 "threads": args.threads, "load_average_before": load_before,
+                                 "threads": args.threads, "bitsandbytes": bitsandbytes_version() if peers else None,
+                                 "load_average_before": load_before,
                                  "load_average_after": load_after, "results": results})
     print(f"\nwrote {path}")
 

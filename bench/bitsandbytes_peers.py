@@ -46,3 +46,31 @@ def bitsandbytes_layers(weight: torch.Tensor) -> dict[str, Callable[[torch.Tenso
     except (RuntimeError, NotImplementedError, ValueError) as error:
         return f"bitsandbytes {bnb.__version__} cannot build its layers on {device.type}: {error}"
     return layers
+
+
+def statistics_bytes(layer: torch.nn.Module) -> int:
+    """Bytes a bitsandbytes layer holds beside its weight parameter, which are no parameter or buffer of
+    the module: NF4's block absmax (itself quantized, with a state of its own), LLM.int8()'s row scales."""
+    weight = layer.weight
+    state = getattr(weight, "quant_state", None)
+    tensors = [getattr(weight, "SCB", None)]
+    if state is not None:
+        tensors += [state.absmax, getattr(getattr(state, "state2", None), "absmax", None)]
+    return sum(t.nbytes for t in tensors if isinstance(t, torch.Tensor))
+
+
+def replace_linear_layers(model: torch.nn.Module, peer: str, skip: tuple[str, ...] = ("lm_head",)) -> int:
+    """Put the ``peer`` layer in place of every bias-free ``nn.Linear`` of ``model`` whose name does not end
+    in one of ``skip``, as transformers' ``load_in_4bit`` / ``load_in_8bit`` do (the LM head kept); returns
+    how many. Raises RuntimeError where bitsandbytes cannot build its layers."""
+    targets = [(name, module) for name, module in model.named_modules()
+               if type(module) is torch.nn.Linear and not name.endswith(skip)]
+    for name, linear in targets:
+        if linear.bias is not None:
+            raise ValueError(f"{name} has a bias, which these peers are built without")
+        layers = bitsandbytes_layers(linear.weight.detach().to(torch.bfloat16))
+        if isinstance(layers, str):
+            raise RuntimeError(layers)
+        parent_name, _, child = name.rpartition(".")
+        setattr(model.get_submodule(parent_name) if parent_name else model, child, layers[peer])
+    return len(targets)

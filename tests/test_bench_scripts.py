@@ -128,3 +128,20 @@ def test_bench_linear_times_bitsandbytes_when_asked(tmp_path):
     (r,) = result["runs"][0]["results"]
     assert r["median_ms"]["bnb_nf4"] > 0 and r["median_ms"]["bnb_int8"] > 0
     assert 0 < r["weight_bytes"]["bnb_nf4"] < r["weight_bytes"]["bnb_int8"] < r["weight_bytes"]["bf16"]
+
+
+def test_bench_policy_step_times_the_bitsandbytes_models_when_asked(tmp_path):
+    pytest.importorskip("transformers")
+    pytest.importorskip("bitsandbytes")
+    out = tmp_path / "step.json"
+    run_bench("bench_policy_step.py", "--config", "policy", "--prompt", "8", "--repeats", "1", "--threads", "1",
+              "--dyq-base", "fp32", "--bitsandbytes", "--out", str(out))
+    result = json.loads(out.read_text())
+    assert result["bitsandbytes"]
+    (step,) = result["results"]
+    for peer in ("bnb_nf4", "bnb_int8"):
+        assert step["step_ms"][peer] > 0 and step["prefill_ms"][peer] > 0
+        assert step["step_breakdown_ms"][peer]["linear layers"] > 0
+    # NF4 below LLM.int8() below bf16: the statistics kept outside the layers' parameters are counted.
+    memory = step["model_bytes"]
+    assert memory["dyq/fp32"] < memory["bf16"] and memory["bnb_nf4"] < memory["bnb_int8"] < memory["bf16"]
