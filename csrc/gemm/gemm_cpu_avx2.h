@@ -66,6 +66,7 @@
 #include "common/cpu_dtype.h"
 #include "common/format.h"
 #include "common/precision.h"
+#include "common/scratch.h"
 #include "cpu/isa_region.h"
 #include "cpu/x86_ops.h"
 #include "parallel/parallel.h"
@@ -215,13 +216,6 @@ void group_products(const float* scales_row, int64_t groups, const DecodeRow* ro
 // block that the row ends before.
 inline int64_t products_pitch(int64_t groups) { return groups + 2; }
 
-// A per-thread buffer of at least `count` floats.
-inline float* products_buffer(int64_t count) {
-  static thread_local std::vector<float> buffer;
-  if (static_cast<int64_t>(buffer.size()) < count) buffer.resize(count);
-  return buffer.data();
-}
-
 // acc[r] += s_x s_w P of each lane of block t, for kRows activation rows and the block's 32 packed bytes;
 // products: the weight row's s_w s_x per group of each activation row, `pitch` apart; `group`: the block's
 // (G >= 64).
@@ -287,7 +281,7 @@ void decode_int_kernel(const uint8_t* weight_rows, const float* scales_rows, int
   const int group_shift = __builtin_ctz(group_size);
   const int64_t row_bytes = k / 2;
   const int64_t pitch = products_pitch(groups);
-  float* products = products_buffer(kCols * kRows * pitch);  // [c][r][group]
+  float* products = scratch_floats(kCols * kRows * pitch);  // [c][r][group]
   for (int c = 0; c < kCols; ++c) {
     group_products<kRows>(scales_rows + c * groups, groups, rows, products + c * kRows * pitch, pitch);
   }

@@ -28,6 +28,7 @@
 #include "common/cpu_dtype.h"
 #include "common/format.h"
 #include "common/precision.h"
+#include "common/scratch.h"
 #include "cpu/isa_region.h"
 #include "cpu/x86_ops.h"
 #include "parallel/parallel.h"
@@ -41,21 +42,6 @@ namespace dyq::cpu::DYQ_ISA_NAMESPACE {
 constexpr int64_t kBlockColumns = 128;  // columns in 64 bytes of packed weights
 constexpr int64_t kChunkColumns = 32;   // act_bits 16: columns in 16 bytes of packed weights
 constexpr int kMaxTileRows = 8;         // activation rows that share one pass over a weight row
-
-// Cache-line aligned storage, so that full-vector loads never split a line.
-template <typename T>
-struct CacheLineAllocator {
-  using value_type = T;
-  CacheLineAllocator() = default;
-  template <typename U>
-  CacheLineAllocator(const CacheLineAllocator<U>&) {}
-  T* allocate(size_t count) { return static_cast<T*>(::operator new(count * sizeof(T), std::align_val_t{64})); }
-  void deallocate(T* p, size_t) { ::operator delete(p, std::align_val_t{64}); }
-  bool operator==(const CacheLineAllocator&) const { return true; }
-  bool operator!=(const CacheLineAllocator&) const { return false; }
-};
-template <typename T>
-using AlignedVector = std::vector<T, CacheLineAllocator<T>>;
 
 inline __m512i even_byte_indices() {
   alignas(64) uint8_t idx[64];
@@ -270,13 +256,6 @@ void group_products(const float* scales_row, int64_t groups, const DecodeRow* ro
                                                               _mm512_maskz_loadu_ps(lanes, rows[r].scales + g)));
     }
   }
-}
-
-// A per-thread buffer of at least `count` floats, cache-line aligned.
-inline float* scratch_floats(int64_t count) {
-  static thread_local AlignedVector<float> buffer;
-  if (static_cast<int64_t>(buffer.size()) < count) buffer.resize(count);
-  return buffer.data();
 }
 
 // The row kernels' loop over the 128-column blocks of their weight rows: body(t, full, block_is_group) for
