@@ -353,3 +353,9 @@ def test_a_skipped_conv1d_stays_one_and_a_saved_gpt2_loads_into_a_fresh_one(tmp_
     ids = torch.randint(0, 300, (1, 9), generator=torch.Generator().manual_seed(2))
     with torch.no_grad():
         assert torch.equal(loaded(ids).logits, model(ids).logits)
+    # From the config alone: a model of other random weights, all replaced, and in eval mode (no dropout).
+    torch.manual_seed(5)
+    from_config = dyq.load_quantized(model.config, tmp_path)
+    assert not from_config.training
+    with torch.no_grad():
+        assert torch.equal(from_config(ids).logits, model(ids).logits)

@@ -122,7 +122,8 @@ def read_quantization_state(directory: str | os.PathLike) -> dict[str, Any]:
 
 def _model_from_config(config, state: dict[str, Any]) -> nn.Module:
     """A Hugging Face model built from its config (no download): the class its ``architectures`` names,
-    or else the class the saved model had."""
+    or else the class the saved model had; in eval mode, as ``from_pretrained`` returns it (a model built
+    from a config trains, and GPT-2's dropout would then change every output)."""
     import transformers
 
     architectures = (getattr(config, "architectures", None) or []) + [state.get("model_class") or ""]
@@ -130,7 +131,7 @@ def _model_from_config(config, state: dict[str, Any]) -> nn.Module:
     if cls is None:
         raise ValueError("load_quantized got a config whose `architectures` names no transformers class "
                          f"({architectures!r}); pass the model built from it instead")
-    return cls(config)
+    return cls(config).eval()
 
 
 def prepare_quantized_layers(model: nn.Module, state: dict[str, Any], flag: PrecisionFlag | None) -> None:
