@@ -359,3 +359,56 @@ def test_a_skipped_conv1d_stays_one_and_a_saved_gpt2_loads_into_a_fresh_one(tmp_
     assert not from_config.training
     with torch.no_grad():
         assert torch.equal(from_config(ids).logits, model(ids).logits)
+
+
+def tiny_encoder():
+    torch.manual_seed(0)
+    layer = torch.nn.TransformerEncoderLayer(128, 4, 256, batch_first=True)
+    return torch.nn.TransformerEncoder(layer, 2, enable_nested_tensor=False).eval()
+
+
+@pytest.mark.parametrize("bits", (16, 8))
+def test_torch_transformer_encoders_get_their_feed_forward_layers_converted(bits, tmp_path):
+    """nn.MultiheadAttention reads out_proj's weight without calling it: that layer is left alone, with the
+    reason. nn.TransformerEncoderLayer's fused inference path reads linear1's and linear2's weights: they are
+    converted and the layer routed through its module path, checked against the float encoder with those
+    two layers' weights dequantized, at inference (where torch would take the fused path)."""
+    model = tiny_encoder()
+    fake_quantized = copy.deepcopy(model)
+    with torch.no_grad():
+        for layer in fake_quantized.layers:
+            for linear in (layer.linear1, layer.linear2):
+                codes, scales = reference.quantize_weight(linear.weight, 128)
+                linear.weight.copy_(reference.dequantize_weight(reference.pack_int4(codes), scales, 128))
+    report = dyq.quantize_model(model, flag=dyq.PrecisionFlag(bits))
+    assert report.converted == [f"layers.{i}.linear{j}" for i in (0, 1) for j in (1, 2)]
+    assert report.skipped == {f"layers.{i}.self_attn.out_proj": "its parent MultiheadAttention reads its weight "
+                              "without calling it" for i in (0, 1)}
+    x = torch.randn(2, 10, 128, generator=torch.Generator().manual_seed(1))
+    with torch.inference_mode():
+        expected, out = fake_quantized(x), model(x)
+    rel = ((out - expected).norm() / expected.norm()).item()
+    exact = 8e-3 if bf16_fallback(20, 128, 128) else 1e-5
+    assert rel < {16: exact, 8: 0.02}[bits], rel
+    dyq.save_quantized(model, tmp_path)
+    torch.manual_seed(7)
+    fresh = torch.nn.TransformerEncoder(torch.nn.TransformerEncoderLayer(128, 4, 256, batch_first=True), 2,
+                                        enable_nested_tensor=False).eval()
+    loaded = dyq.load_quantized(fresh, tmp_path)
+    with torch.inference_mode():
+        assert torch.equal(loaded(x), out)
+
+
+def test_a_transformer_decoder_layer_and_a_bare_multihead_attention():
+    torch.manual_seed(0)
+    decoder = torch.nn.TransformerDecoderLayer(64, 4, 128, batch_first=True).eval()
+    attention = torch.nn.MultiheadAttention(64, 4, batch_first=True).eval()
+    model = torch.nn.ModuleDict({"decoder": decoder, "attention": attention})
+    report = dyq.quantize_model(model)
+    assert report.converted == ["decoder.linear1", "decoder.linear2"]
+    assert set(report.skipped) == {"decoder.self_attn.out_proj", "decoder.multihead_attn.out_proj",
+                                   "attention.out_proj"}
+    x, memory = torch.randn(1, 5, 64), torch.randn(1, 7, 64)
+    with torch.inference_mode():
+        assert decoder(x, memory).shape == (1, 5, 64)
+        assert attention(x, memory, memory)[0].shape == (1, 5, 64)

@@ -17,7 +17,8 @@ from transformers.quantizers.base import HfQuantizer
 from transformers.utils.quantization_config import QuantizationConfigMixin
 
 from ..control.flag import PrecisionFlag
-from .linear import DyQLinear, is_transposed_linear, transposed_linear_to_linear
+from .linear import (DyQLinear, is_transposed_linear, route_encoder_layers_through_modules,
+                     transposed_linear_to_linear, weight_readers)
 from .precision import check_bits, check_group_size
 from .quantize import _matches, quantize_model
 from .serialization import WEIGHT_METHOD_NAMES, WEIGHT_METHODS
@@ -54,8 +55,10 @@ class DyQHfQuantizer(HfQuantizer):
 
     def _targets(self, model: nn.Module):
         skip = tuple(self.quantization_config.modules_to_not_convert)
+        readers = weight_readers(model)  # layers quantize_model leaves alone too
         return [(name, module) for name, module in model.named_modules()
-                if (type(module) is nn.Linear or is_transposed_linear(module)) and not _matches(name, skip)]
+                if (type(module) is nn.Linear or is_transposed_linear(module)) and not _matches(name, skip)
+                and id(module) not in readers]
 
     def _process_model_before_weight_loading(self, model, **kwargs):
         if not self.pre_quantized:
@@ -68,6 +71,7 @@ class DyQHfQuantizer(HfQuantizer):
             DyQLinear.convert_in_place(linear, group_size=config.group_size, act_bits=config.act_bits,
                                        quantize=False)
             linear.weight_method = method
+        route_encoder_layers_through_modules(model)
         # Some architectures' weight initialization, which transformers runs after loading, reaches from a
         # parent into its children's weights (GPT-2 rescales c_proj.weight from its attention and MLP blocks),
         # and a DyQLinear has no weight. A parent that holds no tensor of its own is marked initialized: the

@@ -264,3 +264,23 @@ def transposed_linear_to_linear(module: nn.Module) -> nn.Linear:
     for name in ("nf", "nx"):
         module.__dict__.pop(name, None)
     return module
+
+
+# -- layers their parents read ----------------------------------------------------------------------------------
+def weight_readers(model: nn.Module) -> dict[int, str]:
+    """{id(linear): its parent's class} for the linear layers whose parent always reads their weight
+    instead of calling them, which a DyQLinear (INT4 codes, no ``weight``) would break:
+    ``nn.MultiheadAttention``'s out_proj (``F.multi_head_attention_forward`` takes the weight)."""
+    return {id(parent.out_proj): type(parent).__name__ for parent in model.modules()
+            if isinstance(parent, nn.MultiheadAttention) and isinstance(parent.out_proj, nn.Linear)}
+
+
+def route_encoder_layers_through_modules(model: nn.Module) -> None:
+    """``nn.TransformerEncoderLayer`` (and ``nn.TransformerEncoder`` on its first layer) runs inference
+    through a fused kernel that reads linear1's and linear2's weights; its other path calls them. For an
+    encoder layer whose feed-forward layers are DyQLinear, the fused path is turned off by the attribute it
+    checks (``activation_relu_or_gelu``, which nothing else reads), so that the layers run dyq's GEMMs."""
+    for layer in model.modules():
+        if isinstance(layer, nn.TransformerEncoderLayer) and (
+                isinstance(layer.linear1, DyQLinear) or isinstance(layer.linear2, DyQLinear)):
+            layer.activation_relu_or_gelu = 0

@@ -12,7 +12,8 @@ import torch
 from torch import nn
 
 from ..control.flag import PrecisionFlag
-from .linear import DyQLinear, is_transposed_linear, transposed_linear_to_linear
+from .linear import (DyQLinear, is_transposed_linear, route_encoder_layers_through_modules,
+                     transposed_linear_to_linear, weight_readers)
 from .precision import check_bits, check_group_size
 from . import reference
 from .weight_methods import (CALIBRATED_METHODS, DEFAULT_CALIBRATION_BITS, awq_prepare, check_calibration_bits,
@@ -105,7 +106,10 @@ def quantize_model(model: nn.Module, group_size: int = 128, skip: Iterable[SkipP
                    act_bits: int = 16, flag: PrecisionFlag | None = None, method: str = "rtn", calibration=None,
                    calibration_bits=DEFAULT_CALIBRATION_BITS, min_act_bits=None) -> QuantizationReport:
     """Convert every ``nn.Linear`` of ``model`` in place to a :class:`DyQLinear` with INT4 weights (and
-    every transformers ``Conv1D``, the transposed linear layer of GPT-2 and the models built on it).
+    every transformers ``Conv1D``, the transposed linear layer of GPT-2 and the models built on it). The
+    out_proj of an ``nn.MultiheadAttention``, whose weight the attention reads without calling the layer,
+    stays as it is (the report says why); ``nn.TransformerEncoderLayer``'s feed-forward layers are converted
+    and the layer run through them instead of its fused inference kernel.
 
     Args:
         model: any module, e.g. a Hugging Face ``LlamaForCausalLM`` or a BERT encoder, or an ``nn.Linear``.
@@ -185,12 +189,20 @@ def quantize_model(model: nn.Module, group_size: int = 128, skip: Iterable[SkipP
                       f"linear layer (such as {all_names[0]!r}); patterns are globs against each layer's full name "
                       "and its last component, or compiled regular expressions", stacklevel=2)
 
-    def skipped_as(key: int) -> str | None:
-        return next((n for n in names[key] if _matches(n, skip)), None)
+    coupled = weight_readers(model)
+
+    def skip_reason(key: int) -> str | None:
+        """Why the layer ``key`` stays as it is, or None to convert it."""
+        if key in coupled:
+            return f"its parent {coupled[key]} reads its weight without calling it"
+        matched = next((n for n in names[key] if _matches(n, skip)), None)
+        if matched is None:
+            return None
+        return "matches a skip pattern" + (f" (as {matched})" if matched != names[key][0] else "")
 
     # A floor whose pattern reaches no converted layer would do nothing, silently (a misspelt name): refused
     # here, before any method changes the model.
-    converted_names = [n for key in modules if skipped_as(key) is None for n in names[key]]
+    converted_names = [n for key in modules if skip_reason(key) is None for n in names[key]]
     idle = [pattern for pattern in floors if not any(_matches(n, (pattern,)) for n in converted_names)]
     if idle:
         example = f" (such as {converted_names[0]!r})" if converted_names else ""
@@ -198,22 +210,22 @@ def quantize_model(model: nn.Module, group_size: int = 128, skip: Iterable[SkipP
                          "like skip's, against each layer's full name and its last component")
 
     for key, module in modules.items():  # a Conv1D to be converted becomes the nn.Linear it computes
-        if is_transposed_linear(module) and skipped_as(key) is None:
+        if is_transposed_linear(module) and skip_reason(key) is None:
             transposed_linear_to_linear(module)
 
     channel_weight: dict[int, torch.Tensor | None] = {}
     hessians: dict[int, torch.Tensor] = {}
     if method == "awq":
         channel_weight = awq_prepare(model, calibration, group_size, calibration_bits,
-                                     targets=lambda linear: id(linear) in modules and skipped_as(id(linear)) is None)
+                                     targets=lambda linear: id(linear) in modules and skip_reason(id(linear)) is None)
     elif method == "gptq":
         hessians = collect_hessians(model, calibration)
 
     for key, linear in modules.items():
         first, *others = names[key]
-        matched = skipped_as(key)
-        if matched is not None:
-            report.skipped[first] = "matches a skip pattern" + (f" (as {matched})" if matched != first else "")
+        reason = skip_reason(key)
+        if reason is not None:
+            report.skipped[first] = reason
             continue
         report.linear_bytes_before += _tensor_bytes(linear.parameters())
         if method == "rtn":
@@ -240,6 +252,7 @@ def quantize_model(model: nn.Module, group_size: int = 128, skip: Iterable[SkipP
         if others:
             report.shared[first] = others
 
+    route_encoder_layers_through_modules(model)
     report.model_bytes_after = _module_bytes(model)
     return report
 

@@ -24,7 +24,7 @@ import torch
 from torch import nn
 
 from ..control.flag import PrecisionFlag
-from .linear import DyQLinear, is_transposed_linear, transposed_linear_to_linear
+from .linear import DyQLinear, is_transposed_linear, route_encoder_layers_through_modules, transposed_linear_to_linear
 from .precision import check_bits, check_group_size
 
 CONFIG_NAME = "dyq_config.json"
@@ -157,6 +157,7 @@ def prepare_quantized_layers(model: nn.Module, state: dict[str, Any], flag: Prec
                                    quantize=False)
         module.weight_method = method
         module.set_min_act_bits(layer.get("min_act_bits", 2))
+    route_encoder_layers_through_modules(model)
 
 
 def load_quantized(model_or_config, directory: str | os.PathLike) -> nn.Module:
