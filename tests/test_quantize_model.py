@@ -412,3 +412,21 @@ def test_a_transformer_decoder_layer_and_a_bare_multihead_attention():
     with torch.inference_mode():
         assert decoder(x, memory).shape == (1, 5, 64)
         assert attention(x, memory, memory)[0].shape == (1, 5, 64)
+
+
+def test_a_siglip_vision_tower_with_its_attention_pooling_head_converts_and_runs():
+    """SigLIP (the vision encoder of OpenVLA and PaliGemma) pools with an nn.MultiheadAttention head."""
+    config = transformers.SiglipVisionConfig(hidden_size=64, intermediate_size=128, num_hidden_layers=2,
+                                             num_attention_heads=4, image_size=32, patch_size=8)
+    torch.manual_seed(0)
+    model = transformers.SiglipVisionModel(config).eval()
+    pixels = torch.randn(2, 3, 32, 32, generator=torch.Generator().manual_seed(1))
+    with torch.no_grad():
+        float_pooled = model(pixel_values=pixels).pooler_output
+    report = dyq.quantize_model(model, flag=dyq.PrecisionFlag(8))
+    assert list(report.skipped) == ["head.attention.out_proj"]
+    assert len(report.converted) == 2 * 6 + 2  # q, k, v, out, fc1, fc2 per layer; the head's MLP
+    with torch.no_grad():
+        pooled = model(pixel_values=pixels).pooler_output
+    assert pooled.shape == float_pooled.shape
+    assert ((pooled - float_pooled).norm() / float_pooled.norm()).item() < 0.3  # INT4 weights, A8
