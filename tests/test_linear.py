@@ -132,3 +132,35 @@ def test_a_linear_on_the_meta_device_is_refused_with_the_way_out():
     assert type(meta) is torch.nn.Linear  # refused before the class changed
     shell = dyq.DyQLinear.convert_in_place(meta, quantize=False)
     assert shell.qweight.is_meta and shell.qweight.shape == (8, 64)
+
+
+@pytest.mark.parametrize("reparametrize", ["weight_norm", "spectral_norm", "hook_weight_norm"])
+def test_a_weight_computed_on_access_is_quantized_at_its_current_value(reparametrize):
+    """weight_norm / spectral_norm layers keep no `weight` parameter: their current weight is what is
+    quantized, as a plain layer of that weight would be."""
+    import warnings
+
+    torch.manual_seed(0)
+    linear = torch.nn.Linear(192, 48)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", FutureWarning)  # the hook-based weight_norm is deprecated
+        wrapped = {"weight_norm": torch.nn.utils.parametrizations.weight_norm,
+                   "spectral_norm": torch.nn.utils.parametrizations.spectral_norm,
+                   "hook_weight_norm": torch.nn.utils.weight_norm}[reparametrize](linear)
+    wrapped.eval()
+    plain = torch.nn.Linear(192, 48)
+    with torch.no_grad():
+        plain.weight.copy_(wrapped.weight)
+        plain.bias.copy_(wrapped.bias)
+    expected = dyq.DyQLinear.from_linear(plain, act_bits=8)
+    model = torch.nn.Sequential(wrapped)
+    report = dyq.quantize_model(model, act_bits=8, skip=())
+    assert report.converted == ["0"] and isinstance(model[0], dyq.DyQLinear)
+    assert torch.equal(model[0].qweight, expected.qweight) and torch.equal(model[0].scales, expected.scales)
+    x = torch.randn(3, 192)
+    assert torch.equal(model(x), expected(x))
+
+
+def test_a_lazy_layer_not_yet_initialized_is_refused():
+    with pytest.raises(ValueError, match="0 is a lazy layer whose weight is not initialized yet: run one forward"):
+        dyq.quantize_model(torch.nn.Sequential(torch.nn.LazyLinear(32)))

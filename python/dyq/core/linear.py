@@ -126,6 +126,7 @@ class DyQLinear(nn.Module):
             raise TypeError(f"linear must be a torch.nn.Linear, got {type(linear).__name__}")
         check_group_size(group_size)
         act_bits = check_bits(act_bits, "act_bits")
+        fix_reparametrized_weight(linear)
         if quantize:
             qweight, scales = _quantized_weight(linear, group_size)
         else:
@@ -264,6 +265,19 @@ def transposed_linear_to_linear(module: nn.Module) -> nn.Linear:
     for name in ("nf", "nx"):
         module.__dict__.pop(name, None)
     return module
+
+
+# -- weights computed from others ------------------------------------------------------------------------------
+def fix_reparametrized_weight(linear: nn.Linear) -> None:
+    """Make a weight that is computed on every access (``torch.nn.utils.parametrizations.weight_norm`` /
+    ``spectral_norm``, the older hook-based ``weight_norm``) a plain parameter holding its current value, as
+    static INT4 weights fix it anyway; a plain layer is left as it is."""
+    from torch.nn.utils import parametrize
+
+    if parametrize.is_parametrized(linear, "weight"):
+        parametrize.remove_parametrizations(linear, "weight", leave_parametrized=True)
+    elif "weight" not in linear._parameters and hasattr(linear, "weight_g") and hasattr(linear, "weight_v"):
+        torch.nn.utils.remove_weight_norm(linear)
 
 
 # -- layers their parents read ----------------------------------------------------------------------------------

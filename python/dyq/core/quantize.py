@@ -12,8 +12,8 @@ import torch
 from torch import nn
 
 from ..control.flag import PrecisionFlag
-from .linear import (DyQLinear, is_transposed_linear, route_encoder_layers_through_modules,
-                     transposed_linear_to_linear, weight_readers)
+from .linear import (DyQLinear, fix_reparametrized_weight, is_transposed_linear,
+                     route_encoder_layers_through_modules, transposed_linear_to_linear, weight_readers)
 from .precision import check_bits, check_group_size
 from . import reference
 from .weight_methods import (CALIBRATED_METHODS, DEFAULT_CALIBRATION_BITS, awq_prepare, check_calibration_bits,
@@ -164,6 +164,11 @@ def quantize_model(model: nn.Module, group_size: int = 128, skip: Iterable[SkipP
     skip = tuple(skip) if not isinstance(skip, (str, re.Pattern)) else (skip,)
     for pattern in skip:
         _check_pattern(pattern, "skip")
+    lazy = [name for name, module in model.named_modules()
+            if isinstance(getattr(module, "weight", None), nn.parameter.UninitializedParameter)]
+    if lazy:
+        raise ValueError(f"{lazy[0]} is a lazy layer whose weight is not initialized yet: run one forward pass "
+                         "with a sample input before quantize_model")
     report = QuantizationReport(group_size=group_size, method=method, model_bytes_before=_module_bytes(model))
 
     names: dict[int, list[str]] = {}
@@ -209,9 +214,13 @@ def quantize_model(model: nn.Module, group_size: int = 128, skip: Iterable[SkipP
         raise ValueError(f"min_act_bits: {idle} match no layer that is converted{example}; patterns are matched "
                          "like skip's, against each layer's full name and its last component")
 
-    for key, module in modules.items():  # a Conv1D to be converted becomes the nn.Linear it computes
-        if is_transposed_linear(module) and skip_reason(key) is None:
-            transposed_linear_to_linear(module)
+    # What is converted becomes a plain nn.Linear first (the weight methods read and change its weight): a
+    # Conv1D the nn.Linear it computes, a weight computed on access (weight_norm, spectral_norm) its value.
+    for key, module in modules.items():
+        if skip_reason(key) is None:
+            if is_transposed_linear(module):
+                transposed_linear_to_linear(module)
+            fix_reparametrized_weight(module)
 
     channel_weight: dict[int, torch.Tensor | None] = {}
     hessians: dict[int, torch.Tensor] = {}
