@@ -164,8 +164,9 @@ def quantize_model(model: nn.Module, group_size: int = 128, skip: Iterable[SkipP
     skip = tuple(skip) if not isinstance(skip, (str, re.Pattern)) else (skip,)
     for pattern in skip:
         _check_pattern(pattern, "skip")
+    # (the parameter itself: reading `weight` would run a spectral norm's power iteration)
     lazy = [name for name, module in model.named_modules()
-            if isinstance(getattr(module, "weight", None), nn.parameter.UninitializedParameter)]
+            if isinstance(module._parameters.get("weight"), nn.parameter.UninitializedParameter)]
     if lazy:
         raise ValueError(f"{lazy[0]} is a lazy layer whose weight is not initialized yet: run one forward pass "
                          "with a sample input before quantize_model")
