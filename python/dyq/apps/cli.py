@@ -18,6 +18,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "eval": ("dyq.sim.evaluate", "closed-loop evaluation: task x configuration x seed grid, cached and resumable"),
     "profile": ("dyq.sim.profile", "step-wise perturbation profile of a task's policy; proxy correlations (Sec. III)"),
     "calibrate": ("dyq.sim.profile", "calibrate the dispatcher (lambda, Theta, K, theta_fp) on calibration seeds"),
+    "quantize": ("dyq.apps.quantize_cli", "convert a local Hugging Face checkpoint to INT4 weights, for from_pretrained"),
 }
 
 

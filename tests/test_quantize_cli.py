@@ -1,0 +1,73 @@
+"""``dyq quantize``: a local Hugging Face checkpoint in, one that from_pretrained loads as dyq's INT4 model out,
+the same model quantize_model makes in memory."""
+import numpy as np
+import pytest
+import torch
+
+import dyq
+from dyq.apps import cli
+
+transformers = pytest.importorskip("transformers")
+pytestmark = pytest.mark.skipif(int(transformers.__version__.split(".")[0]) != 5,
+                                reason="dyq's Hugging Face quantizer targets transformers 5.x")
+
+IDS = torch.randint(0, 256, (2, 7), generator=torch.Generator().manual_seed(0))
+
+
+@pytest.fixture
+def float_checkpoint(tmp_path):
+    config = transformers.LlamaConfig(vocab_size=256, hidden_size=128, intermediate_size=256, num_hidden_layers=1,
+                                      num_attention_heads=4, num_key_value_heads=2)
+    torch.manual_seed(0)
+    transformers.LlamaForCausalLM(config).save_pretrained(tmp_path / "float")
+    (tmp_path / "float" / "tokenizer_config.json").write_text("{}")
+    return tmp_path / "float"
+
+
+def in_memory(float_checkpoint, **kwargs):
+    model = transformers.LlamaForCausalLM.from_pretrained(float_checkpoint).eval()
+    dyq.quantize_model(model, **kwargs)
+    return model
+
+
+@pytest.mark.parametrize("method", ["rtn", "gptq"])
+def test_the_written_checkpoint_loads_as_the_model_quantize_model_makes(float_checkpoint, tmp_path, method, capsys):
+    argv = ["quantize", str(float_checkpoint), str(tmp_path / "dyq"), "--group-size", "64", "--act-bits", "8",
+            "--method", method]
+    calibration = None
+    if method == "gptq":
+        ids = np.random.default_rng(1).integers(0, 256, size=(4, 16))
+        np.save(tmp_path / "ids.npy", ids)
+        argv += ["--calibration", str(tmp_path / "ids.npy")]
+        calibration = torch.from_numpy(ids).long()
+    assert cli.main(argv) == 0
+    assert "converted 7 linear layers" in capsys.readouterr().out
+    files = sorted(p.name for p in (tmp_path / "dyq").iterdir())
+    assert "tokenizer_config.json" in files and "model.safetensors" in files
+    loaded = transformers.LlamaForCausalLM.from_pretrained(tmp_path / "dyq")
+    assert isinstance(loaded.model.layers[0].mlp.down_proj, dyq.DyQLinear)
+    assert loaded.model.layers[0].mlp.down_proj.weight_method == method
+    assert type(loaded.lm_head) is torch.nn.Linear and dyq.model_flag(loaded).bits == 8
+    expected = in_memory(float_checkpoint, group_size=64, flag=dyq.PrecisionFlag(8), method=method,
+                         calibration=calibration)
+    with torch.no_grad():
+        assert torch.equal(loaded(IDS).logits, expected(IDS).logits)
+
+
+def test_mistakes_are_one_line_usage_errors(float_checkpoint, tmp_path, capsys):
+    def error(*argv):
+        assert cli.main(["quantize", *map(str, argv)]) == 2
+        err = capsys.readouterr().err
+        assert len(err.strip().splitlines()) == 1 and "Traceback" not in err, err
+        return err
+
+    out = tmp_path / "out"
+    assert "--method awq needs --calibration" in error(float_checkpoint, out, "--method", "awq")
+    np.save(tmp_path / "floats.npy", np.zeros((2, 3), dtype=np.float32))
+    assert "expected integer token ids of shape [batch, seq]" in error(float_checkpoint, out, "--method", "gptq",
+                                                                       "--calibration", tmp_path / "floats.npy")
+    assert "only used by --method awq and gptq" in error(float_checkpoint, out, "--calibration",
+                                                         tmp_path / "floats.npy")
+    assert "OUT must differ from SRC" in error(float_checkpoint, float_checkpoint)
+    assert "has no config.json" in error(tmp_path, out)
+    assert not out.exists()
