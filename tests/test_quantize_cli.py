@@ -54,6 +54,18 @@ def test_the_written_checkpoint_loads_as_the_model_quantize_model_makes(float_ch
         assert torch.equal(loaded(IDS).logits, expected(IDS).logits)
 
 
+def test_dtype_bfloat16_keeps_what_stays_in_float_in_bf16(float_checkpoint, tmp_path):
+    assert cli.main(["quantize", str(float_checkpoint), str(tmp_path / "dyq"), "--dtype", "bfloat16"]) == 0
+    loaded = transformers.LlamaForCausalLM.from_pretrained(tmp_path / "dyq")
+    assert loaded.model.embed_tokens.weight.dtype == torch.bfloat16 and loaded.lm_head.weight.dtype == torch.bfloat16
+    assert loaded.model.layers[0].self_attn.q_proj.scales.dtype == torch.float32
+    expected = transformers.LlamaForCausalLM.from_pretrained(float_checkpoint, dtype=torch.bfloat16).eval()
+    dyq.quantize_model(expected, flag=dyq.PrecisionFlag(16))
+    with torch.no_grad():
+        logits = loaded(IDS).logits
+        assert logits.dtype == torch.bfloat16 and torch.equal(logits, expected(IDS).logits)
+
+
 def test_mistakes_are_one_line_usage_errors(float_checkpoint, tmp_path, capsys):
     def error(*argv):
         assert cli.main(["quantize", *map(str, argv)]) == 2

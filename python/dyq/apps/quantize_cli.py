@@ -3,6 +3,9 @@
     dyq quantize path/to/float path/to/dyq                        # round-to-nearest, group 128
     dyq quantize float dyq --method mse --group-size 64 --act-bits 8
     dyq quantize float dyq --method gptq --calibration ids.npy    # token ids [batch, seq], not evaluation data
+    dyq quantize float dyq --dtype bfloat16                       # what stays in float (embeddings, norms,
+                                                                  # LM head) in bf16: faster on CPUs with bf16
+                                                                  # dot products (README, Benchmarks)
 
 The model is read from ``SRC`` (its ``config.json`` names the transformers class; nothing is downloaded),
 converted by :func:`dyq.quantize_model` and written to ``OUT`` with ``save_pretrained``, its config carrying a
@@ -23,6 +26,7 @@ from .usage import UsageError, input_dir, input_file, output_dir, require
 METHODS = ("rtn", "mse", "awq", "gptq")
 WEIGHT_SUFFIXES = (".safetensors", ".bin", ".pt", ".pth", ".ckpt", ".h5", ".msgpack")
 WRITTEN_BY_SAVE = ("config.json", "generation_config.json")
+DTYPES = ("auto", "float32", "bfloat16", "float16")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -35,6 +39,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="the activation width the loaded model starts at (its flag's value)")
     parser.add_argument("--skip", action="append", metavar="PATTERN",
                         help=f"a layer name pattern to keep in float (repeatable; default: {', '.join(DEFAULT_SKIP)})")
+    parser.add_argument("--dtype", choices=DTYPES, default="auto",
+                        help="the dtype of what stays in float (default: the checkpoint's own)")
     parser.add_argument("--calibration", type=input_file(".npy", ".pt"),
                         help="token ids [batch, seq] (.npy, or a tensor saved with torch.save) for awq and gptq")
 
@@ -77,7 +83,10 @@ def main(args: argparse.Namespace) -> int:
     skip = tuple(args.skip) if args.skip else DEFAULT_SKIP
 
     config = transformers.AutoConfig.from_pretrained(args.src, local_files_only=True)
-    model = _model_class(transformers, config).from_pretrained(args.src, local_files_only=True).eval()
+    import torch
+
+    dtype = "auto" if args.dtype == "auto" else getattr(torch, args.dtype)
+    model = _model_class(transformers, config).from_pretrained(args.src, local_files_only=True, dtype=dtype).eval()
     report = dyq.quantize_model(model, group_size=args.group_size, skip=skip, act_bits=args.act_bits,
                                 flag=dyq.PrecisionFlag(args.act_bits), method=args.method, calibration=calibration)
     print(report)
