@@ -45,13 +45,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="token ids [batch, seq] (.npy, or a tensor saved with torch.save) for awq and gptq")
 
 
-def _model_class(transformers, config):
-    for name in getattr(config, "architectures", None) or []:
-        if hasattr(transformers, name):
-            return getattr(transformers, name)
-    return transformers.AutoModelForCausalLM
-
-
 def _calibration_ids(path: Path):
     import numpy as np
     import torch
@@ -69,7 +62,7 @@ def _calibration_ids(path: Path):
 def main(args: argparse.Namespace) -> int:
     transformers = require("transformers", "dyq quantize")
     import dyq
-    from ..core.serialization import WEIGHT_METHOD_NAMES
+    from ..core.serialization import WEIGHT_METHOD_NAMES, transformers_model_class
 
     if not (args.src / "config.json").is_file():
         raise UsageError(f"{args.src} has no config.json: expected a Hugging Face checkpoint folder")
@@ -86,7 +79,8 @@ def main(args: argparse.Namespace) -> int:
     import torch
 
     dtype = "auto" if args.dtype == "auto" else getattr(torch, args.dtype)
-    model = _model_class(transformers, config).from_pretrained(args.src, local_files_only=True, dtype=dtype).eval()
+    model_class = transformers_model_class(config, "AutoModelForCausalLM")
+    model = model_class.from_pretrained(args.src, local_files_only=True, dtype=dtype).eval()
     report = dyq.quantize_model(model, group_size=args.group_size, skip=skip, act_bits=args.act_bits,
                                 flag=dyq.PrecisionFlag(args.act_bits), method=args.method, calibration=calibration)
     print(report)

@@ -17,8 +17,7 @@ from transformers.quantizers.base import HfQuantizer
 from transformers.utils.quantization_config import QuantizationConfigMixin
 
 from ..control.flag import PrecisionFlag
-from .linear import (DyQLinear, is_transposed_linear, route_encoder_layers_through_modules,
-                     transposed_linear_to_linear, weight_readers)
+from .linear import DyQLinear, is_transposed_linear, route_encoder_layers_through_modules, weight_readers
 from .precision import check_bits, check_group_size
 from .quantize import _matches, quantize_model
 from .serialization import WEIGHT_METHOD_NAMES, WEIGHT_METHODS
@@ -66,8 +65,6 @@ class DyQHfQuantizer(HfQuantizer):
         config = self.quantization_config
         method = next(m for m, saved in WEIGHT_METHOD_NAMES.items() if saved == config.weight_method)
         for _, linear in self._targets(model):  # shells of the saved shape; the load fills them
-            if is_transposed_linear(linear):
-                transposed_linear_to_linear(linear)
             DyQLinear.convert_in_place(linear, group_size=config.group_size, act_bits=config.act_bits,
                                        quantize=False)
             linear.weight_method = method

@@ -121,12 +121,13 @@ class DyQLinear(nn.Module):
         """Turn ``linear`` itself into a DyQLinear (its class changes; its weight becomes INT4), so that
         every reference to it, in any parent or in the caller's hands, sees the quantized layer. Returns it.
         ``quantize=False`` leaves empty INT4 buffers of the right shape (on the weight's device, meta
-        included) for a state dict to be loaded into."""
-        if not isinstance(linear, nn.Linear):
+        included) for a state dict to be loaded into. A transformers ``Conv1D``, or a weight computed on
+        access, first becomes the plain ``nn.Linear`` it computes (:func:`as_plain_linear`)."""
+        if not (isinstance(linear, nn.Linear) or is_transposed_linear(linear)):
             raise TypeError(f"linear must be a torch.nn.Linear, got {type(linear).__name__}")
         check_group_size(group_size)
         act_bits = check_bits(act_bits, "act_bits")
-        fix_reparametrized_weight(linear)
+        as_plain_linear(linear)
         if quantize:
             qweight, scales = _quantized_weight(linear, group_size)
         else:
@@ -251,12 +252,9 @@ def is_transposed_linear(module: nn.Module) -> bool:
             and isinstance(getattr(module, "weight", None), torch.Tensor) and module.weight.dim() == 2)
 
 
-def transposed_linear_to_linear(module: nn.Module) -> nn.Linear:
+def _transposed_linear_to_linear(module: nn.Module) -> None:
     """Turn a transformers ``Conv1D`` itself into the ``nn.Linear`` it computes (its class changes, its weight
-    is transposed), so that every reference to it sees the new layer; ``quantize_model`` then converts it like
-    any other. Returns it."""
-    if not is_transposed_linear(module):
-        raise TypeError(f"module must be a transformers Conv1D, got {type(module).__name__}")
+    is transposed), so that every reference to it sees the new layer."""
     weight = module.weight
     in_features, out_features = weight.shape
     module.__class__ = nn.Linear
@@ -264,20 +262,24 @@ def transposed_linear_to_linear(module: nn.Module) -> nn.Linear:
     module.in_features, module.out_features = in_features, out_features
     for name in ("nf", "nx"):
         module.__dict__.pop(name, None)
-    return module
 
 
-# -- weights computed from others ------------------------------------------------------------------------------
-def fix_reparametrized_weight(linear: nn.Linear) -> None:
-    """Make a weight that is computed on every access (``torch.nn.utils.parametrizations.weight_norm`` /
-    ``spectral_norm``, the older hook-based ``weight_norm``) a plain parameter holding its current value, as
-    static INT4 weights fix it anyway; a plain layer is left as it is."""
+# -- the layer a DyQLinear replaces ------------------------------------------------------------------------------
+def as_plain_linear(linear: nn.Module) -> nn.Linear:
+    """Make ``linear`` itself the plain ``nn.Linear`` it computes, ready for conversion, and return it: a
+    transformers ``Conv1D`` is transposed, and a weight computed on every access
+    (``torch.nn.utils.parametrizations.weight_norm`` / ``spectral_norm``, the older hook-based ``weight_norm``)
+    becomes a parameter holding its current value, as static INT4 weights fix it anyway. A plain layer is
+    left as it is."""
     from torch.nn.utils import parametrize
 
+    if is_transposed_linear(linear):
+        _transposed_linear_to_linear(linear)
     if parametrize.is_parametrized(linear, "weight"):
         parametrize.remove_parametrizations(linear, "weight", leave_parametrized=True)
     elif "weight" not in linear._parameters and hasattr(linear, "weight_g") and hasattr(linear, "weight_v"):
         torch.nn.utils.remove_weight_norm(linear)
+    return linear
 
 
 # -- layers their parents read ----------------------------------------------------------------------------------

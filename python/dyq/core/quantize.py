@@ -12,8 +12,8 @@ import torch
 from torch import nn
 
 from ..control.flag import PrecisionFlag
-from .linear import (DyQLinear, fix_reparametrized_weight, is_transposed_linear,
-                     route_encoder_layers_through_modules, transposed_linear_to_linear, weight_readers)
+from .linear import (DyQLinear, as_plain_linear, is_transposed_linear, route_encoder_layers_through_modules,
+                     weight_readers)
 from .precision import check_bits, check_group_size
 from . import reference
 from .weight_methods import (CALIBRATED_METHODS, DEFAULT_CALIBRATION_BITS, awq_prepare, check_calibration_bits,
@@ -219,9 +219,7 @@ def quantize_model(model: nn.Module, group_size: int = 128, skip: Iterable[SkipP
     # Conv1D the nn.Linear it computes, a weight computed on access (weight_norm, spectral_norm) its value.
     for key, module in modules.items():
         if skip_reason(key) is None:
-            if is_transposed_linear(module):
-                transposed_linear_to_linear(module)
-            fix_reparametrized_weight(module)
+            as_plain_linear(module)
 
     channel_weight: dict[int, torch.Tensor | None] = {}
     hessians: dict[int, torch.Tensor] = {}

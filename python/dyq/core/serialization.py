@@ -24,7 +24,7 @@ import torch
 from torch import nn
 
 from ..control.flag import PrecisionFlag
-from .linear import DyQLinear, is_transposed_linear, route_encoder_layers_through_modules, transposed_linear_to_linear
+from .linear import DyQLinear, as_plain_linear, is_transposed_linear, route_encoder_layers_through_modules
 from .precision import check_bits, check_group_size
 
 CONFIG_NAME = "dyq_config.json"
@@ -120,14 +120,21 @@ def read_quantization_state(directory: str | os.PathLike) -> dict[str, Any]:
     return state
 
 
+def transformers_model_class(config, *fallbacks: str):
+    """The transformers class that ``config.architectures`` names, else the first of ``fallbacks`` that
+    transformers has; None if neither."""
+    import transformers
+
+    names = [*(getattr(config, "architectures", None) or []), *fallbacks]
+    return next((getattr(transformers, name) for name in names if name and hasattr(transformers, name)), None)
+
+
 def _model_from_config(config, state: dict[str, Any]) -> nn.Module:
     """A Hugging Face model built from its config (no download): the class its ``architectures`` names,
     or else the class the saved model had; in eval mode, as ``from_pretrained`` returns it (a model built
     from a config trains, and GPT-2's dropout would then change every output)."""
-    import transformers
-
     architectures = (getattr(config, "architectures", None) or []) + [state.get("model_class") or ""]
-    cls = next((getattr(transformers, a) for a in architectures if hasattr(transformers, a)), None)
+    cls = transformers_model_class(config, state.get("model_class") or "")
     if cls is None:
         raise ValueError("load_quantized got a config whose `architectures` names no transformers class "
                          f"({architectures!r}); pass the model built from it instead")
@@ -143,8 +150,8 @@ def prepare_quantized_layers(model: nn.Module, state: dict[str, Any], flag: Prec
         module = found.get(name)
         if isinstance(module, DyQLinear):
             continue
-        if is_transposed_linear(module):
-            transposed_linear_to_linear(module)
+        if is_transposed_linear(module):  # its nn.Linear shape, for the check below
+            as_plain_linear(module)
         if not isinstance(module, nn.Linear):
             raise ValueError(f"the saved model has a DyQLinear at {name!r}, but this model has "
                              f"{type(module).__name__ if module is not None else 'nothing'} there")
