@@ -146,7 +146,7 @@ def int4_torch_layer(weight: torch.Tensor):
 def bitsandbytes_peer(bf16: torch.Tensor, peer: str) -> tuple:
     """(factory of a fresh copy, bytes of its weights and statistics) of one bitsandbytes peer."""
     def make():
-        return bitsandbytes_layers(bf16)[peer]
+        return bitsandbytes_layers(bf16, (peer,))[peer]
 
     layer = make()
     return make, layer.weight.nbytes + statistics_bytes(layer)

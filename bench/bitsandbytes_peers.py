@@ -24,8 +24,10 @@ def bitsandbytes_version() -> str | None:
     return bitsandbytes.__version__
 
 
-def bitsandbytes_layers(weight: torch.Tensor) -> dict[str, Callable[[torch.Tensor], torch.Tensor]] | str:
-    """{peer: layer} for ``weight`` ([N, K], bf16) on ``weight``'s device, or why there are none."""
+def bitsandbytes_layers(weight: torch.Tensor,
+                        peers=PEERS) -> dict[str, Callable[[torch.Tensor], torch.Tensor]] | str:
+    """{peer: layer} of each of ``peers`` for ``weight`` ([N, K], bf16) on ``weight``'s device, or why
+    there are none."""
     # No downloads at run time: bitsandbytes' CPU backend would otherwise ask the Hub for a kernel.
     os.environ.setdefault("HF_HUB_OFFLINE", "1")
     # A peer that cannot run here (not installed, or built for another CUDA) leaves the benchmark going: any
@@ -38,15 +40,21 @@ def bitsandbytes_layers(weight: torch.Tensor) -> dict[str, Callable[[torch.Tenso
         return f"bitsandbytes does not import: {type(error).__name__}: {error}"
     n, k = weight.shape
     device = weight.device
-    try:
-        nf4 = bnb.nn.Linear4bit(k, n, bias=False, compute_dtype=torch.bfloat16, quant_type="nf4")
-        nf4.weight = bnb.nn.Params4bit(weight.detach().to("cpu", torch.bfloat16).clone(), requires_grad=False,
-                                       quant_type="nf4")
-        int8 = bnb.nn.Linear8bitLt(k, n, bias=False, has_fp16_weights=False, threshold=INT8_OUTLIER_THRESHOLD)
-        int8.weight = bnb.nn.Int8Params(weight.detach().to("cpu", torch.bfloat16).clone(), requires_grad=False,
-                                        has_fp16_weights=False)
-        # Moving the layers to their device quantizes their weights.
-        layers = {"bnb_nf4": nf4.to(device).eval(), "bnb_int8": int8.to(device).eval()}
+    def nf4():
+        layer = bnb.nn.Linear4bit(k, n, bias=False, compute_dtype=torch.bfloat16, quant_type="nf4")
+        layer.weight = bnb.nn.Params4bit(weight.detach().to("cpu", torch.bfloat16).clone(), requires_grad=False,
+                                         quant_type="nf4")
+        return layer
+
+    def int8():
+        layer = bnb.nn.Linear8bitLt(k, n, bias=False, has_fp16_weights=False, threshold=INT8_OUTLIER_THRESHOLD)
+        layer.weight = bnb.nn.Int8Params(weight.detach().to("cpu", torch.bfloat16).clone(), requires_grad=False,
+                                         has_fp16_weights=False)
+        return layer
+
+    builders = {"bnb_nf4": nf4, "bnb_int8": int8}
+    try:  # moving a layer to its device quantizes its weight
+        layers = {peer: builders[peer]().to(device).eval() for peer in peers}
     except Exception as error:  # noqa: BLE001
         return f"bitsandbytes {bnb.__version__} cannot build its layers on {device.type}: {type(error).__name__}: {error}"
     return layers
@@ -72,7 +80,7 @@ def replace_linear_layers(model: torch.nn.Module, peer: str, skip: tuple[str, ..
     for name, linear in targets:
         if linear.bias is not None:
             raise ValueError(f"{name} has a bias, which these peers are built without")
-        layers = bitsandbytes_layers(linear.weight.detach().to(torch.bfloat16))
+        layers = bitsandbytes_layers(linear.weight.detach().to(torch.bfloat16), (peer,))
         if isinstance(layers, str):
             raise RuntimeError(layers)
         parent_name, _, child = name.rpartition(".")
