@@ -11,16 +11,6 @@ pytestmark = pytest.mark.skipif(int(transformers.__version__.split(".")[0]) != 5
                                 reason="dyq's Hugging Face quantizer targets transformers 5.x")
 
 
-@pytest.fixture
-def float_checkpoint(tmp_path):
-    # hidden 576 (SmolLM2's) and intermediate 960 (SmolVLA's backbone): remainder groups at G = 128.
-    config = transformers.LlamaConfig(vocab_size=256, hidden_size=576, intermediate_size=960, num_hidden_layers=1,
-                                      num_attention_heads=4, num_key_value_heads=2)
-    torch.manual_seed(0)
-    transformers.LlamaForCausalLM(config).save_pretrained(tmp_path / "float")
-    return tmp_path / "float"
-
-
 IDS = torch.randint(0, 256, (2, 7), generator=torch.Generator().manual_seed(0))
 
 

@@ -15,24 +15,21 @@ IDS = torch.randint(0, 256, (2, 7), generator=torch.Generator().manual_seed(0))
 
 
 @pytest.fixture
-def float_checkpoint(tmp_path):
-    config = transformers.LlamaConfig(vocab_size=256, hidden_size=128, intermediate_size=256, num_hidden_layers=1,
-                                      num_attention_heads=4, num_key_value_heads=2)
-    torch.manual_seed(0)
-    transformers.LlamaForCausalLM(config).save_pretrained(tmp_path / "float")
-    (tmp_path / "float" / "tokenizer_config.json").write_text("{}")
-    return tmp_path / "float"
+def checkpoint(float_checkpoint):
+    """conftest's float Llama, with a tokenizer file beside it."""
+    (float_checkpoint / "tokenizer_config.json").write_text("{}")
+    return float_checkpoint
 
 
-def in_memory(float_checkpoint, **kwargs):
-    model = transformers.LlamaForCausalLM.from_pretrained(float_checkpoint).eval()
+def in_memory(checkpoint, **kwargs):
+    model = transformers.LlamaForCausalLM.from_pretrained(checkpoint).eval()
     dyq.quantize_model(model, **kwargs)
     return model
 
 
 @pytest.mark.parametrize("method", ["rtn", "gptq"])
-def test_the_written_checkpoint_loads_as_the_model_quantize_model_makes(float_checkpoint, tmp_path, method, capsys):
-    argv = ["quantize", str(float_checkpoint), str(tmp_path / "dyq"), "--group-size", "64", "--act-bits", "8",
+def test_the_written_checkpoint_loads_as_the_model_quantize_model_makes(checkpoint, tmp_path, method, capsys):
+    argv = ["quantize", str(checkpoint), str(tmp_path / "dyq"), "--group-size", "64", "--act-bits", "8",
             "--method", method]
     calibration = None
     if method == "gptq":
@@ -48,25 +45,25 @@ def test_the_written_checkpoint_loads_as_the_model_quantize_model_makes(float_ch
     assert isinstance(loaded.model.layers[0].mlp.down_proj, dyq.DyQLinear)
     assert loaded.model.layers[0].mlp.down_proj.weight_method == method
     assert type(loaded.lm_head) is torch.nn.Linear and dyq.model_flag(loaded).bits == 8
-    expected = in_memory(float_checkpoint, group_size=64, flag=dyq.PrecisionFlag(8), method=method,
+    expected = in_memory(checkpoint, group_size=64, flag=dyq.PrecisionFlag(8), method=method,
                          calibration=calibration)
     with torch.no_grad():
         assert torch.equal(loaded(IDS).logits, expected(IDS).logits)
 
 
-def test_dtype_bfloat16_keeps_what_stays_in_float_in_bf16(float_checkpoint, tmp_path):
-    assert cli.main(["quantize", str(float_checkpoint), str(tmp_path / "dyq"), "--dtype", "bfloat16"]) == 0
+def test_dtype_bfloat16_keeps_what_stays_in_float_in_bf16(checkpoint, tmp_path):
+    assert cli.main(["quantize", str(checkpoint), str(tmp_path / "dyq"), "--dtype", "bfloat16"]) == 0
     loaded = transformers.LlamaForCausalLM.from_pretrained(tmp_path / "dyq")
     assert loaded.model.embed_tokens.weight.dtype == torch.bfloat16 and loaded.lm_head.weight.dtype == torch.bfloat16
     assert loaded.model.layers[0].self_attn.q_proj.scales.dtype == torch.float32
-    expected = transformers.LlamaForCausalLM.from_pretrained(float_checkpoint, dtype=torch.bfloat16).eval()
+    expected = transformers.LlamaForCausalLM.from_pretrained(checkpoint, dtype=torch.bfloat16).eval()
     dyq.quantize_model(expected, flag=dyq.PrecisionFlag(16))
     with torch.no_grad():
         logits = loaded(IDS).logits
         assert logits.dtype == torch.bfloat16 and torch.equal(logits, expected(IDS).logits)
 
 
-def test_mistakes_are_one_line_usage_errors(float_checkpoint, tmp_path, capsys):
+def test_mistakes_are_one_line_usage_errors(checkpoint, tmp_path, capsys):
     def error(*argv):
         assert cli.main(["quantize", *map(str, argv)]) == 2
         err = capsys.readouterr().err
@@ -74,12 +71,12 @@ def test_mistakes_are_one_line_usage_errors(float_checkpoint, tmp_path, capsys):
         return err
 
     out = tmp_path / "out"
-    assert "--method awq needs --calibration" in error(float_checkpoint, out, "--method", "awq")
+    assert "--method awq needs --calibration" in error(checkpoint, out, "--method", "awq")
     np.save(tmp_path / "floats.npy", np.zeros((2, 3), dtype=np.float32))
-    assert "expected integer token ids of shape [batch, seq]" in error(float_checkpoint, out, "--method", "gptq",
+    assert "expected integer token ids of shape [batch, seq]" in error(checkpoint, out, "--method", "gptq",
                                                                        "--calibration", tmp_path / "floats.npy")
-    assert "only used by --method awq and gptq" in error(float_checkpoint, out, "--calibration",
+    assert "only used by --method awq and gptq" in error(checkpoint, out, "--calibration",
                                                          tmp_path / "floats.npy")
-    assert "OUT must differ from SRC" in error(float_checkpoint, float_checkpoint)
+    assert "OUT must differ from SRC" in error(checkpoint, checkpoint)
     assert "has no config.json" in error(tmp_path, out)
     assert not out.exists()
