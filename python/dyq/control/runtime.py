@@ -139,10 +139,10 @@ class DyQRuntime:
         step of an episode): the dispatcher is then not advanced and its current b* (16 after a
         reset) is published.
         """
-        for name, function in (("prefill", prefill), ("decode", decode)):
+        for function, expected in ((prefill, "prefill must be a callable of no argument"),
+                                   (decode, "decode must be a callable of the prefill's output")):
             if not callable(function):
-                raise TypeError(f"{name} must be a callable ({'no argument' if name == 'prefill' else 'the prefill output'}"
-                                f" in), got {type(function).__name__}")
+                raise TypeError(f"{expected}, got {type(function).__name__}")
         self.begin_step(kinematics)
         start = time.perf_counter()
         try:
