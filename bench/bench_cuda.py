@@ -5,10 +5,16 @@
 For every (N, K) of the Llama-2-7B linear layers and every M, times `torch.ops.dyq.gemm` at 2, 4, 8
 and 16 activation bits, `torch.matmul` in bf16 (cuBLAS) and `torch._weight_int4pack_mm` (where this
 torch has it), bitsandbytes' NF4 and LLM.int8() layers (where it is installed:
-bench/bitsandbytes_peers.py) with CUDA events: warm-up, then the median of repeated runs, each run on one of several
-weight copies in rotation so that M = 1 measures DRAM, not L2. Reports, at M = 1, the achieved
-bandwidth (bytes of weights + scales + activations + output over time) as a percentage of a measured
-device-to-device copy, and at M = 512 the rate in TOPS. Prints a table and writes
+bench/bitsandbytes_peers.py) with CUDA events, each call on one of several weight copies in rotation so that
+M = 1 measures DRAM, not L2. Two times per call, medians after a warm-up:
+
+- ``ms``: the device's time, calls queued back to back behind a spin kernel (dyq.results.cuda_device_median_ms),
+  as a CUDA graph or a busy stream runs them. The table, the bandwidth and the TOPS come from it.
+- ``eager_ms``: a lone call on an idle stream, the host's launch included (dyq.results.cuda_median_ms): what
+  one eager call costs a Python caller. Small calls measure the host here, not the kernel.
+
+Reports, at M = 1, the achieved bandwidth (bytes of weights + scales + activations + output over time) as a
+percentage of a measured device-to-device copy, and at M = 512 the rate in TOPS. Prints a table and writes
 bench/results/cuda_<device>.json with the device, driver, versions, shapes and medians.
 """
 from __future__ import annotations
@@ -23,7 +29,7 @@ from pathlib import Path
 import torch
 
 import dyq
-from dyq.results import cuda_median_ms, environment, write_json
+from dyq.results import HostSynchronizes, cuda_device_median_ms, cuda_median_ms, environment, write_json
 
 from bitsandbytes_peers import INPUT_DTYPES as BITSANDBYTES_INPUT_DTYPES, PEERS as BITSANDBYTES_PEERS, \
     bitsandbytes_layers, bitsandbytes_version
@@ -37,7 +43,7 @@ def copy_bandwidth_gbs(warmup: int, repeats: int) -> float:
     """Device-to-device copy of 1 GiB, counting bytes read plus bytes written."""
     src = torch.empty(1 << 30, dtype=torch.uint8, device="cuda")
     dst = torch.empty_like(src)
-    ms = cuda_median_ms(lambda: dst.copy_(src), warmup=warmup, repeats=repeats)
+    ms = cuda_device_median_ms(lambda: dst.copy_(src), warmup=warmup, repeats=repeats, calls=2)
     return 2 * src.numel() / ms / 1e6
 
 
@@ -76,6 +82,20 @@ def torch_int4_layer(w_bf16: torch.Tensor):
     return weight, scales_and_zeros
 
 
+def time_call(entry: dict, key: str, fn, warmup: int, repeats: int) -> None:
+    """entry["ms"][key]: the device's time of a call; entry["eager_ms"][key]: a lone call's, launch included. A
+    call that waits for the GPU has no device time of its own: its eager time stands in, and the reason is
+    recorded."""
+    entry.setdefault("eager_ms", {})[key] = cuda_median_ms(fn, warmup=warmup, repeats=repeats)
+    try:
+        # 10 calls a sample: a quarter of the lone calls' repeats gives as many calls, a tenth of the spins.
+        entry["ms"][key] = cuda_device_median_ms(fn, warmup=0, repeats=max(5, repeats // 4))
+    except HostSynchronizes as error:
+        entry["ms"][key] = entry["eager_ms"][key]
+        entry.setdefault("device_time_unavailable", {})[key] = str(error)
+        print(f"  {key} at M = {entry['m']}: {error}; its eager time stands in")
+
+
 def bench_shape(n: int, k: int, rows, warmup: int, repeats: int, copy_gbs: float, results: list, table: list):
     w = (torch.randn(n, k, device="cuda") * 0.02).to(torch.bfloat16)
     qweight, scales = torch.ops.dyq.quantize_weight(w, GROUP_SIZE)
@@ -96,17 +116,17 @@ def bench_shape(n: int, k: int, rows, warmup: int, repeats: int, copy_gbs: float
         entry = {"n": n, "k": k, "m": m, "group_size": GROUP_SIZE, "ms": {}}
         for bits in dyq.VALID_BITS:
             fn = Rotating(lambda i, b=bits: torch.ops.dyq.gemm(x, *dyq_layers[i], GROUP_SIZE, b), copies)
-            entry["ms"][f"dyq_a{bits}"] = cuda_median_ms(fn, warmup=warmup, repeats=repeats)
+            time_call(entry, f"dyq_a{bits}", fn, warmup, repeats)
         fn = Rotating(lambda i: torch.matmul(x, bf16_layers[i].t()), len(bf16_layers))
-        entry["ms"]["cublas_bf16"] = cuda_median_ms(fn, warmup=warmup, repeats=repeats)
+        time_call(entry, "cublas_bf16", fn, warmup, repeats)
         if int4_layers:
             fn = Rotating(lambda i: torch._weight_int4pack_mm(x, int4_layers[i][0], GROUP_SIZE, int4_layers[i][1]),
                           copies)
-            entry["ms"]["torch_int4_weight_only"] = cuda_median_ms(fn, warmup=warmup, repeats=repeats)
+            time_call(entry, "torch_int4_weight_only", fn, warmup, repeats)
         for peer in BITSANDBYTES_PEERS if bnb_layers else ():
             fn = Rotating(lambda i, p=peer, xp=x.to(BITSANDBYTES_INPUT_DTYPES[peer]): bnb_layers[i][p](xp), copies)
             try:  # a peer failing on this device must not cost the rest of the run
-                entry["ms"][peer] = cuda_median_ms(fn, warmup=warmup, repeats=repeats)
+                time_call(entry, peer, fn, warmup, repeats)
             except Exception as error:  # noqa: BLE001
                 entry.setdefault("peer_errors", {})[peer] = f"{type(error).__name__}: {error}"
                 print(f"  {peer} failed at M = {m}: {entry['peer_errors'][peer]}")
@@ -118,7 +138,8 @@ def bench_shape(n: int, k: int, rows, warmup: int, repeats: int, copy_gbs: float
         results.append(entry)
         row = [f"{n}x{k}", str(m)] + [f"{entry['ms'].get(c, float('nan')) * 1e3:9.1f}" for c in COLUMNS]
         if m == 1:
-            row.append(f"{entry['dyq_bandwidth_pct_of_copy']['dyq_a4']:5.1f}% BW (a4)")
+            row.append(f"{entry['dyq_bandwidth_pct_of_copy']['dyq_a4']:5.1f}% BW (a4); a lone eager call: "
+                       f"a4 {entry['eager_ms']['dyq_a4'] * 1e3:.1f}, cuBLAS {entry['eager_ms']['cublas_bf16'] * 1e3:.1f}")
         elif m == 512:
             row.append(f"{entry['tops']['dyq_a8']:6.1f} TOPS (a8)")
         table.append(row)
@@ -190,7 +211,7 @@ def main() -> int:
     copy_gbs = copy_bandwidth_gbs(warmup, repeats)
     print(f"{info['gpu']} (sm_{info['capability'].replace('.', '')}), driver {info['driver']}, "
           f"torch {info['torch']}, CUDA {info['cuda']}; device-to-device copy {copy_gbs:.0f} GB/s")
-    print("times in microseconds (median)")
+    print("device time per call in microseconds (median; calls queued back to back, launches not counted)")
     header = ["N x K", "M"] + [f"{c:>9}" for c in COLUMNS]
     print("  ".join(header))
     results, table = [], []

@@ -112,3 +112,89 @@ def test_environment_records_the_variables_that_change_cpu_timings(monkeypatch):
     recorded = results.environment()["timing_variables"]
     assert recorded["OMP_WAIT_POLICY"] == "ACTIVE"
     assert "GOMP_SPINCOUNT" not in recorded
+
+
+# dyq.results.cuda_device_median_ms on a simulated stream: the host advances its own clock by each call's
+# launch cost, the GPU runs the queued work in order (a spin of c cycles takes c ns), and an event is
+# reached at the GPU time when the work queued before it is done.
+class FakeStream:
+    def __init__(self, launch_us: float, kernel_us: float):
+        self.launch, self.kernel = launch_us * 1e-3, kernel_us * 1e-3  # ms
+        self.host = 0.0  # ms
+        self.gpu_free = 0.0  # when the GPU finishes what is queued
+
+    def enqueue(self, duration_ms: float) -> float:
+        self.gpu_free = max(self.gpu_free, self.host) + duration_ms
+        return self.gpu_free
+
+    def sleep(self, cycles: int):
+        self.enqueue(cycles * 1e-6)
+
+    def call(self):
+        self.host += self.launch
+        self.enqueue(self.kernel)
+
+    def synchronizing_call(self):
+        self.call()
+        self.host = self.gpu_free
+
+    def event(self):
+        stream = self
+
+        class Event:
+            def record(self):
+                self.at = stream.enqueue(0.0)
+
+            def query(self):
+                return self.at <= stream.host
+
+            def synchronize(self):
+                stream.host = max(stream.host, self.at)
+
+            def elapsed_time(self, other):
+                return other.at - self.at
+
+        return Event()
+
+
+@pytest.mark.parametrize("launch_us, kernel_us", [(40.0, 5.0), (2.0, 30.0)])
+def test_device_time_excludes_the_launches_that_a_lone_call_measures(launch_us, kernel_us):
+    stream = FakeStream(launch_us, kernel_us)
+    device = results.cuda_device_median_ms(stream.call, warmup=2, repeats=7, calls=10, spin_cycles=1000,
+                                           sleep=stream.sleep, event=stream.event)
+    assert device == pytest.approx(kernel_us * 1e-3)
+    # Bracketing one call adds its launch to the kernel: the reason for the device time.
+    start, end = stream.event(), stream.event()
+    start.record()
+    stream.call()
+    end.record()
+    end.synchronize()
+    assert start.elapsed_time(end) == pytest.approx((launch_us + kernel_us) * 1e-3)
+
+
+def test_a_spin_shorter_than_the_launches_doubles_until_the_calls_are_queued_in_time():
+    stream = FakeStream(launch_us=40.0, kernel_us=5.0)
+    spins = []
+
+    def sleep(cycles):
+        spins.append(cycles)
+        stream.sleep(cycles)
+
+    device = results.cuda_device_median_ms(stream.call, warmup=0, repeats=3, calls=10, spin_cycles=1000,
+                                           sleep=sleep, event=stream.event)
+    assert device == pytest.approx(5e-3)
+    # 10 launches take 400 us = 400000 cycles of the spin: 1000 doubled 9 times (512000) is the first long enough.
+    assert spins[:10] == [1000 * 2 ** i for i in range(10)] and spins[10:] == [512000] * 2
+
+
+def test_a_call_that_waits_for_the_gpu_is_refused():
+    stream = FakeStream(launch_us=1.0, kernel_us=5.0)
+    with pytest.raises(results.HostSynchronizes, match="waits for the GPU"):
+        results.cuda_device_median_ms(stream.synchronizing_call, warmup=0, repeats=3, calls=4, spin_cycles=1000,
+                                      max_spin_cycles=1 << 16, sleep=stream.sleep, event=stream.event)
+
+
+@pytest.mark.parametrize("warmup, repeats, calls", [(-1, 3, 10), (0, 0, 10), (0, 3, 0)])
+def test_device_time_refuses_bad_counts(warmup, repeats, calls):
+    with pytest.raises(ValueError, match="calls"):
+        results.cuda_device_median_ms(lambda: None, warmup=warmup, repeats=repeats, calls=calls)

@@ -133,7 +133,10 @@ def interleaved_median_ms(candidates: dict, *, warmup: int = 1, repeats: int = 1
 
 
 def cuda_median_ms(fn, *, warmup: int, repeats: int) -> float:
-    """Median milliseconds of fn() over ``repeats`` runs, each bracketed by CUDA events."""
+    """Median milliseconds of a lone fn() call, bracketed by CUDA events on an idle stream: what one
+    eager call costs a Python caller, the host's launch included. A call that the GPU finishes faster
+    than the host launches it (a GEMV of a few microseconds behind tens of microseconds of Python, op
+    dispatch and launches) measures the host: :func:`cuda_device_median_ms` measures the GPU."""
     for _ in range(warmup):
         fn()
     times = []
@@ -144,6 +147,47 @@ def cuda_median_ms(fn, *, warmup: int, repeats: int) -> float:
         end.record()
         end.synchronize()
         times.append(start.elapsed_time(end))
+    return statistics.median(times)
+
+
+class HostSynchronizes(RuntimeError):
+    """fn waits for the GPU, so its calls can never be queued ahead of it."""
+
+
+def cuda_device_median_ms(fn, *, warmup: int, repeats: int, calls: int = 10, spin_cycles: int = 1 << 20,
+                          max_spin_cycles: int = 1 << 28, sleep=None, event=None) -> float:
+    """Median device milliseconds of one fn() call, without the host's launch time.
+
+    Each sample queues ``calls`` calls behind a spin kernel (``torch.cuda._sleep``), so that the GPU finds
+    them all queued and runs them back to back (as a CUDA graph or a busy stream does), and divides the
+    events' interval by ``calls``. A sample counts only if the GPU was still spinning when the host had
+    queued the last call (the start event not yet reached); otherwise the spin doubles and the sample is
+    taken again. A fn that synchronizes with the host can never pass: past ``max_spin_cycles`` it raises
+    :class:`HostSynchronizes`. ``sleep`` and ``event`` replace ``torch.cuda._sleep`` and
+    ``torch.cuda.Event`` (tests)."""
+    if warmup < 0 or repeats < 1 or calls < 1:
+        raise ValueError(f"warmup must be >= 0, repeats and calls >= 1, got {warmup}, {repeats} and {calls}")
+    sleep = sleep or torch.cuda._sleep
+    event = event or (lambda: torch.cuda.Event(enable_timing=True))
+    for _ in range(warmup):
+        fn()
+    times = []
+    while len(times) < repeats:
+        start, end = event(), event()
+        sleep(spin_cycles)
+        start.record()
+        for _ in range(calls):
+            fn()
+        end.record()
+        queued_in_time = not start.query()
+        end.synchronize()
+        if queued_in_time:
+            times.append(start.elapsed_time(end) / calls)
+        elif spin_cycles >= max_spin_cycles:
+            raise HostSynchronizes(f"the GPU reached the calls before the host had queued {calls} of them even "
+                                   f"behind a spin of {spin_cycles} cycles: fn waits for the GPU")
+        else:
+            spin_cycles *= 2
     return statistics.median(times)
 
 
