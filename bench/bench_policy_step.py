@@ -3,7 +3,7 @@ tokens, each one forward with the KV cache, for torch fp32 and bf16 against dyq 
 
 Two Llama configs with random weights (transformers' LlamaConfig, nothing downloaded): the closed-loop
 policy's (python/dyq/sim/policies/*/policy.json) and one of about 0.5 B parameters. The prefill computes
-the logits of its last position only (``logits_to_keep=1``), as ``generate`` and dyq's own policy do: the
+the logits of its last position only (``logits_to_keep=1`` where transformers has it), as ``generate`` and dyq's own policy do: the
 first action token needs no others.
 
 dyq runs ``dyq.quantize_model`` on a copy of the model in a base dtype (its LM head and everything outside
@@ -47,7 +47,7 @@ import torch
 
 import dyq
 from dyq.results import environment, interleaved_median_ms, print_table, write_json
-from dyq.sim.policy import cache_keyword
+from dyq.sim.policy import cached_forward
 
 from bitsandbytes_peers import PEERS as BITSANDBYTES_PEERS, bitsandbytes_version, replace_linear_layers, \
     statistics_bytes
@@ -85,11 +85,8 @@ def build_model(settings: dict, prompt: int):
 
 
 def prefill(model, prompt_ids: torch.Tensor):
-    """The prompt's forward into a fresh KV cache, which later calls grow in place (as in dyq's policy)."""
-    from transformers import DynamicCache
-
-    cache = {cache_keyword(): DynamicCache()}
-    return model(input_ids=prompt_ids, use_cache=True, logits_to_keep=1, **cache), cache
+    """The prompt's forward into a new KV cache (as in dyq's policy); returns the output and the cache."""
+    return cached_forward(model, prompt_ids)
 
 
 def control_step(model, prompt_ids: torch.Tensor) -> torch.Tensor:
@@ -97,7 +94,7 @@ def control_step(model, prompt_ids: torch.Tensor) -> torch.Tensor:
     token = out.logits[:, -1:].argmax(-1)
     tokens = []
     for _ in range(ACTION_TOKENS):
-        out = model(input_ids=token, use_cache=True, logits_to_keep=1, **cache)
+        out, cache = cached_forward(model, token, cache)
         token = out.logits[:, -1:].argmax(-1)
         tokens.append(token)
     return torch.cat(tokens, dim=1)

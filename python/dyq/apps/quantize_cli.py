@@ -62,7 +62,14 @@ def _calibration_ids(path: Path):
 def main(args: argparse.Namespace) -> int:
     transformers = require("transformers", "dyq quantize")
     import dyq
+    from packaging.version import Version
+
     from ..core.serialization import WEIGHT_METHOD_NAMES, transformers_model_class
+
+    try:  # OUT is read back through the quantizer: refuse before loading a model that could not be written
+        dyq.DyQConfig
+    except ImportError as missing:
+        raise UsageError(f"OUT is a checkpoint that from_pretrained loads through dyq.DyQConfig. {missing}") from None
 
     if not (args.src / "config.json").is_file():
         raise UsageError(f"{args.src} has no config.json: expected a Hugging Face checkpoint folder")
@@ -80,7 +87,9 @@ def main(args: argparse.Namespace) -> int:
 
     dtype = "auto" if args.dtype == "auto" else getattr(torch, args.dtype)
     model_class = transformers_model_class(config, "AutoModelForCausalLM")
-    model = model_class.from_pretrained(args.src, local_files_only=True, dtype=dtype).eval()
+    # transformers 4.56 renamed from_pretrained's torch_dtype to dtype.
+    dtype_keyword = "dtype" if Version(transformers.__version__) >= Version("4.56") else "torch_dtype"
+    model = model_class.from_pretrained(args.src, local_files_only=True, **{dtype_keyword: dtype}).eval()
     report = dyq.quantize_model(model, group_size=args.group_size, skip=skip, act_bits=args.act_bits,
                                 flag=dyq.PrecisionFlag(args.act_bits), method=args.method, calibration=calibration)
     print(report)

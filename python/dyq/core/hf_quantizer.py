@@ -11,8 +11,17 @@ from __future__ import annotations
 
 from typing import Any
 
+import transformers
 from torch import nn
-from transformers.quantizers.auto import register_quantization_config, register_quantizer
+
+try:
+    from transformers.quantizers.auto import register_quantization_config, register_quantizer
+except ImportError as missing:  # the hooks came with transformers 4.49
+    raise ImportError(
+        f"dyq.DyQConfig plugs into transformers' custom quantizers (transformers >= 4.49; tested with 5.x), which "
+        f"transformers {transformers.__version__} lacks. Without them: build or load the float model, then "
+        f"dyq.quantize_model(model); dyq.save_quantized(model, dir) and dyq.load_quantized(model, dir) save "
+        f"and load it.") from missing
 from transformers.quantizers.base import HfQuantizer
 from transformers.utils.quantization_config import QuantizationConfigMixin
 

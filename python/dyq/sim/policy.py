@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+import functools
 import json
 import os
 from pathlib import Path
@@ -34,13 +35,35 @@ TASK_INDEX = "task_index"
 CONFIG_FILE = "policy.json"
 
 
-def cache_keyword() -> str:
-    """transformers 5 renamed the KV-cache argument and output from ``past_key_values`` to ``cache``."""
+@functools.lru_cache(maxsize=None)
+def _forward_parameters() -> frozenset[str]:
     import inspect
 
     from transformers import LlamaForCausalLM
 
-    return "cache" if "cache" in inspect.signature(LlamaForCausalLM.forward).parameters else "past_key_values"
+    return frozenset(inspect.signature(LlamaForCausalLM.forward).parameters)
+
+
+def cache_keyword() -> str:
+    """transformers 5 renamed the KV-cache argument and output from ``past_key_values`` to ``cache``."""
+    return "cache" if "cache" in _forward_parameters() else "past_key_values"
+
+
+def cached_forward(model, input_ids: torch.Tensor, cache=None, **inputs) -> tuple[Any, Any]:
+    """One forward of ``model`` that extends the KV cache ``cache`` (None: a new one) and computes the logits of
+    the last position only; returns the output and the cache to pass to the next call. Written for every
+    transformers from 4.40 on: the cache is the argument and output ``cache`` in transformers 5
+    (``past_key_values`` before), a ``DynamicCache`` that grows in place where transformers makes one, tuples
+    that each call returns anew in 4.4x; the logits kept are ``logits_to_keep`` (``num_logits_to_keep`` in
+    4.45 to 4.49; before that every position's logits are computed, and the caller reads the last)."""
+    keyword = cache_keyword()
+    keywords = {"use_cache": True, **({keyword: cache} if cache is not None else {})}
+    for name in ("logits_to_keep", "num_logits_to_keep"):
+        if name in _forward_parameters():
+            keywords[name] = 1
+            break
+    out = model(input_ids=input_ids, **inputs, **keywords)
+    return out, out[keyword]
 
 
 @dataclasses.dataclass
@@ -138,7 +161,6 @@ class TokenPolicy:
         self.model = model if model is not None else LlamaForCausalLM(config.llama_config())
         self.model.eval()
         self._action_slice = slice(self.vocabulary.first_action, self.vocabulary.first_action + BINS)
-        self._cache_keyword = cache_keyword()
 
     # -- one control step ---------------------------------------------------------------------
 
@@ -162,11 +184,7 @@ class TokenPolicy:
     @torch.inference_mode()
     def prefill(self, observation: np.ndarray) -> tuple[Any, int]:
         """Runs the prompt through the model; returns the KV cache and the first action bin."""
-        from transformers import DynamicCache
-
-        cache = DynamicCache()
-        out = self.model(input_ids=self.prompt(observation), use_cache=True, logits_to_keep=1,
-                         **{self._cache_keyword: cache})
+        out, cache = cached_forward(self.model, self.prompt(observation))
         return cache, int(out.logits[0, -1, self._action_slice].argmax())
 
     @torch.inference_mode()
@@ -177,8 +195,7 @@ class TokenPolicy:
         position = self.vocabulary.prefix_length
         for _ in range(ACTION_DIMS - 1):
             token = torch.tensor([[bins[-1] + self.vocabulary.first_action]])
-            out = self.model(input_ids=token, position_ids=torch.tensor([[position]]), use_cache=True,
-                             logits_to_keep=1, **{self._cache_keyword: cache})  # the cache grows in place
+            out, cache = cached_forward(self.model, token, cache, position_ids=torch.tensor([[position]]))
             position += 1
             bins.append(int(out.logits[0, -1, self._action_slice].argmax()))
         return np.asarray(bins, dtype=np.int64)
