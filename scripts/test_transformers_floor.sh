@@ -16,4 +16,4 @@ export PYTHONPATH="$floor"
 ../.venv/bin/python -c "import transformers as t; assert t.__version__ == '4.40.1', t.__version__; print('transformers', t.__version__)"
 ../.venv/bin/python -m pytest -q -p no:cacheprovider test_transformers_versions.py test_quantize_model.py \
   test_quantize_cli.py test_weight_methods.py test_rotation.py test_smoothing.py test_sim_policy.py \
-  test_sim_profile.py test_sim_closed_loop.py test_demo.py "$@"
+  test_sim_profile.py test_sim_closed_loop.py test_demo.py test_export.py "$@"

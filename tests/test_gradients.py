@@ -101,3 +101,14 @@ def test_lora_adapters_train_on_a_quantized_model(act_bits):
         optimizer.step()
         losses.append(loss.item())
     assert losses[-1] < 0.7 * losses[0]
+
+
+@pytest.mark.parametrize("shape", [(64,), (2, 3, 64), (1, 1, 1, 64)])
+def test_input_gradient_has_the_inputs_shape_at_any_rank(shape, rng):
+    qweight, scales = dyq.ops.quantize_weight(random_weight(8, 64, rng), 64)
+    x = random_activations(shape, rng).requires_grad_()
+    grad_out = torch.randn(shape[:-1] + (8,), generator=rng)
+    dyq.ops.gemm(x, qweight, scales, 64, 8).backward(grad_out)
+    weight = dyq.ops.dequantize_weight(qweight, scales, 64).double()
+    assert x.grad.shape == x.shape
+    torch.testing.assert_close(x.grad.double(), grad_out.double() @ weight, rtol=1e-6, atol=1e-6)

@@ -70,8 +70,9 @@ struct FrozenWeightGemm : torch::autograd::Function<FrozenWeightGemm<Op>> {
   static at::Tensor forward(AutogradContext* ctx, const at::Tensor& x, const at::Tensor& qweight,
                             const at::Tensor& scales, int64_t group_size, const ActBits& act_bits,
                             const std::optional<at::Tensor>& bias, Extra... extra) {
+    // No sizes of x are saved: its gradient takes them from the output's (x.sizes() would also fix a size that
+    // torch.export traces as symbolic to the one example's).
     ctx->saved_data["group_size"] = group_size;
-    ctx->saved_data["x_sizes"] = x.sizes();
     ctx->saved_data["x_dtype"] = x.scalar_type();
     ctx->saved_data["arguments"] = static_cast<int64_t>(6 + sizeof...(Extra));
     // needs_input_grad counts the tensor arguments only: x, qweight, scales, and the flag where it is one.
@@ -84,18 +85,16 @@ struct FrozenWeightGemm : torch::autograd::Function<FrozenWeightGemm<Op>> {
     const variable_list saved = ctx->get_saved_variables();
     const at::Tensor& qweight = saved[0];
     const at::Tensor& scales = saved[1];
-    const at::Tensor grad_out = grad_outputs[0].reshape({-1, qweight.size(0)});
+    const at::Tensor& grad_out = grad_outputs[0];  // [..., N]: x's leading dimensions
     variable_list grads(ctx->saved_data["arguments"].toInt());  // one per argument; x is 0, the bias 5
     if (ctx->needs_input_grad(0)) {
       const at::Tensor weight = DequantizeWeightOp::call(qweight, scales, ctx->saved_data["group_size"].toInt());
-      grads[0] = grad_out.to(at::kFloat)
-                     .matmul(weight)
-                     .to(ctx->saved_data["x_dtype"].toScalarType())
-                     .reshape(ctx->saved_data["x_sizes"].toIntVector());
+      // [..., N] x [N, K]: x's shape.
+      grads[0] = grad_out.to(at::kFloat).matmul(weight).to(ctx->saved_data["x_dtype"].toScalarType());
     }
     const auto bias_edge = ctx->saved_data.find("bias_edge");
     if (bias_edge != ctx->saved_data.end() && ctx->needs_input_grad(bias_edge->second.toInt())) {
-      grads[5] = grad_out.sum(0);
+      grads[5] = grad_out.reshape({-1, qweight.size(0)}).sum(0);
     }
     return grads;
   }

@@ -14,6 +14,7 @@ from .control.flag import PrecisionFlag, capture_cuda_graph
 from .control.runtime import DyQRuntime, StepStats, force_precision
 from .core import ops, reference
 from .core.cpu import cpu_gemm_kernel, cpu_info
+from .core.export import export
 from .core.linear import DyQLinear
 from .core.precision import FALLBACK_BITS, GROUP_SIZES, VALID_BITS
 from .core.quantize import QuantizationReport, bind_flag, model_flag, quantize_model, set_precision
@@ -48,6 +49,7 @@ __all__ = [
     "bind_flag",
     "cpu_gemm_kernel",
     "cpu_info",
+    "export",
     "load_quantized",
     "model_flag",
     "ops",

@@ -1,6 +1,8 @@
 """``DyQLinear``: a drop-in ``nn.Linear`` with static INT4 weights and a switchable activation precision."""
 from __future__ import annotations
 
+import warnings
+
 import torch
 from torch import nn
 
@@ -10,6 +12,10 @@ from .host_memory import on_huge_pages
 from .precision import check_bits, check_group_size
 
 ACTIVATION_DTYPES = (torch.float32, torch.bfloat16, torch.float16)
+_EXPORTED_FLAG_WARNING = (
+    "torch.export records a DyQLinear's precision flag as a constant: a saved program or an AOTInductor package "
+    "keeps its own copy and runs at the width the flag holds now, whatever is written to the flag later. "
+    "dyq.export(model, args) makes the flag the program's first input instead (program(flag.tensor, *args)).")
 # The ops' overloads themselves: resolving torch.ops.dyq.gemm on every call costs time a small layer notices.
 _GEMM = torch.ops.dyq.gemm.default
 _GEMM_WITH_FLAG = torch.ops.dyq.gemm_with_flag.default
@@ -192,6 +198,8 @@ class DyQLinear(nn.Module):
         qweight, scales = self._buffers["qweight"], self._buffers["scales"]
         if self.flag is None:
             return _GEMM(x, qweight, scales, self.group_size, max(self.act_bits, self.min_act_bits), bias)
+        if torch.compiler.is_exporting() and isinstance(self.flag, PrecisionFlag):
+            warnings.warn(_EXPORTED_FLAG_WARNING, stacklevel=2)
         return _GEMM_WITH_FLAG(x, qweight, scales, self.group_size, self.flag.tensor, bias, self.min_act_bits)
 
     # -- module plumbing ---------------------------------------------------------------------------------------
