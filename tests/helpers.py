@@ -55,3 +55,31 @@ def assert_gemm_close(out, x, qweight, scales, group_size, act_bits, bias=None):
 def bf16_fallback(m, k, group_size):
     """Whether the CPU's W4A16 GEMM for an [m, k] input runs on bf16 dot products (x rounded to bf16)."""
     return "bf16" in dyq.cpu_gemm_kernel(m, k, group_size, 16)
+
+
+def hf_quantizer_unavailable() -> str | None:
+    """Why dyq.DyQConfig cannot run with the transformers installed (its tests then skip), or None: it needs
+    transformers' custom-quantizer hooks (4.49 on), and on 4.x accelerate, which loading a quantized
+    checkpoint imports."""
+    import importlib.util
+
+    from packaging.version import Version
+
+    import transformers
+
+    version = Version(transformers.__version__)
+    if version < Version("4.49"):
+        return f"dyq.DyQConfig needs transformers >= 4.49 (installed: {version})"
+    if version.major == 4 and importlib.util.find_spec("accelerate") is None:
+        return "transformers 4.x loads quantized checkpoints through accelerate, which is not installed"
+    return None
+
+
+def dtype_keyword(dtype) -> dict:
+    """from_pretrained's dtype argument in the installed transformers' name (torch_dtype before 4.56). "auto",
+    the checkpoint's own dtype, is 5.x's default; 4.x loads fp32 without it."""
+    from packaging.version import Version
+
+    import transformers
+
+    return {"dtype" if Version(transformers.__version__) >= Version("4.56") else "torch_dtype": dtype}

@@ -5,10 +5,10 @@ import pytest
 import torch
 
 import dyq
+from helpers import hf_quantizer_unavailable
 
 transformers = pytest.importorskip("transformers")
-pytestmark = pytest.mark.skipif(int(transformers.__version__.split(".")[0]) != 5,
-                                reason="dyq's Hugging Face quantizer targets transformers 5.x")
+pytestmark = pytest.mark.skipif(hf_quantizer_unavailable() is not None, reason=f"{hf_quantizer_unavailable()}")
 
 
 IDS = torch.randint(0, 256, (2, 7), generator=torch.Generator().manual_seed(0))

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 from typing import Any
 
+import torch
 import transformers
 from torch import nn
 
@@ -92,10 +93,19 @@ class DyQHfQuantizer(HfQuantizer):
         config = self.quantization_config
         flag = PrecisionFlag(config.act_bits)
         if self.pre_quantized:
-            for module in model.modules():
-                if isinstance(module, DyQLinear):
-                    module.bind_flag(flag)
-                    module.place_packed_weights()  # the loader may have put tensors of its own in place
+            layers = [(name, module) for name, module in model.named_modules() if isinstance(module, DyQLinear)]
+            # transformers 4.x casts every floating tensor of a quantized checkpoint to the model's dtype, the fp32
+            # group scales included (5.x keeps them): the numerics would change without a word.
+            rounded = [name for name, layer in layers if layer.scales.dtype != torch.float32]
+            if rounded:
+                raise ValueError(
+                    f"transformers {transformers.__version__} loaded the fp32 group scales of {len(rounded)} DyQLinear "
+                    f"layers ({rounded[0]}, ...) as {model.get_submodule(rounded[0]).scales.dtype}, which would change "
+                    "their numerics: load with dtype=torch.float32 (torch_dtype before transformers 4.56; "
+                    "model.to(torch.bfloat16) afterwards keeps the scales in fp32), or with transformers 5")
+            for _, module in layers:
+                module.bind_flag(flag)
+                module.place_packed_weights()  # the loader may have put tensors of its own in place
         else:
             method = next(m for m, saved in WEIGHT_METHOD_NAMES.items() if saved == config.weight_method)
             if method in CALIBRATED_METHODS:
