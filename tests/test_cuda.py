@@ -227,6 +227,22 @@ def test_cuda_graph_replays_at_the_precision_the_flag_holds(m, rng):
         assert torch.equal(captured, h), f"replay at {bits} bits differs from eager"
 
 
+@pytest.mark.parametrize("m", (1, 64))
+def test_an_exported_program_on_cuda_reads_the_pinned_flag_passed_to_it(m, rng, tmp_path):
+    """dyq.export of a CUDA model: the program, also saved and loaded, takes the pinned host flag as its first
+    input and follows each write, as the eager model does."""
+    model = torch.nn.Sequential(torch.nn.Linear(256, 512), torch.nn.GELU(), torch.nn.Linear(512, 256)).cuda().eval()
+    flag = dyq.PrecisionFlag(16, pin_memory=True)
+    dyq.quantize_model(model, skip=(), flag=flag)
+    x = random_activations((m, 256), rng).to(torch.bfloat16).cuda()
+    torch.export.save(dyq.export(model, (x,)), tmp_path / "program.pt2")
+    program = torch.export.load(tmp_path / "program.pt2").module()
+    for bits in (16, 2, 8, 4, 16):
+        flag.bits = bits
+        with torch.no_grad():
+            assert torch.equal(program(flag.tensor, x), model(x)), f"at {bits} bits"
+
+
 @pytest.mark.parametrize("capture_bits", (2, 16))
 def test_cuda_graph_keeps_a_layers_floor_under_every_flag_value(capture_bits, rng):
     """The middle layer never runs below A8 (min_act_bits = 8): the kernel applies the floor where it reads
