@@ -86,7 +86,10 @@ def test_clipping_finds_the_known_optimum_of_a_group():
     assert not torch.allclose(rtn_scales, scales)
 
 
-def test_clipping_matches_a_brute_force_search_and_never_loses_to_round_to_nearest():
+@pytest.mark.parametrize("block_elements", (None, 4 * 96, 1))  # one block; blocks of 4 rows and a ragged one; rows
+def test_clipping_matches_a_brute_force_search_and_never_loses_to_round_to_nearest(block_elements, monkeypatch):
+    if block_elements is not None:
+        monkeypatch.setattr(weight_methods, "MSE_BLOCK_ELEMENTS", block_elements)
     gen = torch.Generator().manual_seed(2)
     weight = torch.randn(6, 96, generator=gen) * torch.rand(6, 96, generator=gen) ** 3  # heavy-tailed
     channel_weight = torch.rand(96, generator=gen) * 4

@@ -58,6 +58,7 @@ DEFAULT_CALIBRATION_BITS = (16, 8, 4, 2)
 SEARCH_TOKENS = 256
 GPTQ_DAMPING = 0.01  # added to H's diagonal, as a share of its mean diagonal (the paper's 1 %)
 GPTQ_BLOCK = 128     # columns per lazy-update block (a multiple of every group size)
+MSE_BLOCK_ELEMENTS = 1 << 16  # weights per block of rows in the clipping search (256 KiB in fp32)
 
 
 def check_method(method) -> str:
@@ -76,13 +77,27 @@ def clipped_weight(weight: torch.Tensor, group_size: int, channel_weight: torch.
     if not torch.isfinite(weight).all():
         raise ValueError("weight contains NaN or Inf")
     k = weight.shape[1]
-    w = reference._grouped(weight.detach().float().cpu(), group_size)                # [N, Gs, G]
     if channel_weight is None:
         h = torch.ones(1, 1, 1, dtype=torch.float64)
     else:
         if channel_weight.shape != (k,):
             raise ValueError(f"channel_weight must have shape [in_features = {k}], got {tuple(channel_weight.shape)}")
         h = reference._grouped(channel_weight.detach().double().cpu().clamp(min=0)[None], group_size)
+    # Blocks of rows whose temporaries stay in the caches: each ratio makes several passes over them, which over
+    # the whole of an 11008 x 4096 layer ran at the memory's speed (16 s against 2.1 s in blocks of 16 rows on
+    # the 2-core EPYC; blocks of 4 rows spent 6.5 s in per-op costs, of 64 rows 5.2 s). Rows are independent:
+    # the result is the same, bit for bit.
+    rows = max(1, MSE_BLOCK_ELEMENTS // max(k, 1))
+    blocks = [_clipped_rows(weight[start:start + rows], group_size, h, ratios)
+              for start in range(0, weight.shape[0], rows)] or [_clipped_rows(weight, group_size, h, ratios)]
+    return torch.cat([codes for codes, _ in blocks]), torch.cat([scales for _, scales in blocks])
+
+
+def _clipped_rows(weight: torch.Tensor, group_size: int, h: torch.Tensor, ratios: Sequence[float]
+                  ) -> tuple[torch.Tensor, torch.Tensor]:
+    """clipped_weight of some rows, h already grouped ([1, Gs, G] or [1, 1, 1])."""
+    k = weight.shape[1]
+    w = reference._grouped(weight.detach().float().cpu(), group_size)                # [N, Gs, G]
     absmax = w.abs().amax(dim=-1)
     empty = absmax / 7 == 0
     best_error = torch.full(absmax.shape, math.inf, dtype=torch.float64)
