@@ -13,6 +13,9 @@ M = 1 measures DRAM, not L2. Two times per call, medians after a warm-up:
 - ``eager_ms``: a lone call on an idle stream, the host's launch included (dyq.results.cuda_median_ms): what
   one eager call costs a Python caller. Small calls measure the host here, not the kernel.
 
+Then whole control steps of a 0.5 B Llama-shaped decoder in plain torch (bench/decoder_step.py: a GPU machine
+may have no transformers), bf16 against dyq at each width and bitsandbytes, eager (``control_step``).
+
 Reports, at M = 1, the achieved bandwidth (bytes of weights + scales + activations + output over time) as a
 percentage of a measured device-to-device copy, and at M = 512 the rate in TOPS. Prints a table and writes
 bench/results/cuda_<device>.json with the device, driver, versions, shapes and medians.
@@ -20,6 +23,7 @@ bench/results/cuda_<device>.json with the device, driver, versions, shapes and m
 from __future__ import annotations
 
 import argparse
+import copy
 import re
 import statistics
 import sys
@@ -29,10 +33,12 @@ from pathlib import Path
 import torch
 
 import dyq
-from dyq.results import HostSynchronizes, cuda_device_median_ms, cuda_median_ms, environment, write_json
+from dyq.results import HostSynchronizes, cuda_device_median_ms, cuda_median_ms, environment, \
+    interleaved_median_ms, write_json
 
 from bitsandbytes_peers import INPUT_DTYPES as BITSANDBYTES_INPUT_DTYPES, PEERS as BITSANDBYTES_PEERS, \
-    bitsandbytes_layers, bitsandbytes_version
+    bitsandbytes_layers, bitsandbytes_version, replace_linear_layers
+from decoder_step import HALF_BILLION, Decoder, control_step as decoder_control_step
 
 SHAPES = ((4096, 4096), (12288, 4096), (22016, 4096), (4096, 11008))  # (N, K): qkv/o, fused qkv, gate+up, down
 ROWS = (1, 4, 8, 16, 64, 256, 512)
@@ -198,6 +204,44 @@ def graph_flag_switching(m: int, n: int, k: int, layers: int, warmup: int, repea
             "fixed_flag_step_ms": fixed, "switching_flag_step_ms": switching}
 
 
+def control_step_section(warmup: int, repeats: int, device: str = "cuda", config: dict = HALF_BILLION,
+                         prompt: int = 64) -> dict:
+    """Whole control steps (a prefill of ``prompt`` tokens, then 7 greedily decoded tokens over a KV cache) of
+    bench/decoder_step.py's plain-torch decoder in bf16: torch (cuBLAS) against dyq at each width (the LM head
+    in bf16) and bitsandbytes' layers where installed. Eager calls, as a Python control loop makes them: each
+    step's wall time to its last token, the device synchronized. Models in turns, each repeat in a shuffled
+    order."""
+    torch.manual_seed(0)
+    bf16 = Decoder(**config).to(device, torch.bfloat16).eval()
+    flag = dyq.PrecisionFlag(16, pin_memory=device == "cuda")
+    quantized = copy.deepcopy(bf16)
+    dyq.quantize_model(quantized, flag=flag)
+    models = {"bf16": (None, bf16), **{f"dyq_a{bits}": ((lambda bits=bits: setattr(flag, "bits", bits)), quantized)
+                                       for bits in dyq.VALID_BITS}}
+    errors = {}
+    for peer in BITSANDBYTES_PEERS:
+        try:
+            model = copy.deepcopy(bf16)
+            replace_linear_layers(model, peer)
+            models[peer] = (None, model)
+        except Exception as error:  # noqa: BLE001  (not installed, or no kernel for this device)
+            errors[peer] = f"{type(error).__name__}: {error}"
+    prompt_ids = torch.randint(0, config["vocab"], (1, prompt), device=device)
+    synchronize = torch.cuda.synchronize if device == "cuda" else (lambda: None)
+
+    def step(model):
+        decoder_control_step(model, prompt_ids)
+        synchronize()
+
+    candidates = {name: (prepare, lambda model=model: step(model)) for name, (prepare, model) in models.items()}
+    step_ms = interleaved_median_ms(candidates, warmup=warmup, repeats=repeats)
+    memory = {name: sum(t.numel() * t.element_size() for t in {id(t): t for t in [*model.parameters(),
+                                                                                  *model.buffers()]}.values())
+              for name, (_, model) in models.items()}
+    return {"config": config, "parameters": sum(p.numel() for p in bf16.parameters()), "prompt_tokens": prompt, "decoded_tokens": 7, "timing": "eager steps in turns, wall "
+            "time to the last token", "step_ms": step_ms, "model_bytes": memory, "peer_errors": errors}
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--quick", action="store_true", help="first shape only, fewer repeats")
@@ -236,6 +280,17 @@ def main() -> int:
         fixed = "  ".join(f"a{b} {t:.4f}" for b, t in entry["fixed_flag_step_ms"].items())
         print(f"  M = {m}: fixed flag {fixed}; flag switched every step {entry['switching_flag_step_ms']:.4f}; "
               f"replay equals eager at {entry['replay_equals_eager']}")
+    path = write_json(args.out / f"cuda_{name}.json", report)
+    try:  # last, and on its own: the kernel tables above are already written
+        step = control_step_section(3, 10 if args.quick else 30)
+        report["control_step"] = step
+        print(f"control step of a {step['parameters'] / 1e9:.2f} B decoder "
+              f"(prefill {step['prompt_tokens']}, {step['decoded_tokens']} decoded tokens), eager, median ms: "
+              + "  ".join(f"{key} {ms:.2f}" for key, ms in step["step_ms"].items())
+              + "".join(f"; {peer}: {error}" for peer, error in step["peer_errors"].items()))
+    except Exception as error:  # noqa: BLE001
+        report["control_step"] = {"error": f"{type(error).__name__}: {error}"}
+        print(f"control step failed: {report['control_step']['error']}")
     path = write_json(args.out / f"cuda_{name}.json", report)
     print(f"wrote {path}")
     return 0

@@ -65,7 +65,7 @@ workers=()
 "$PYTHON" -c "import xdist" 2> /dev/null && workers=(-n 8)
 step test_cuda "${TEST_LIMIT:-240}" "$PYTHON" -m pytest -q -p no:cacheprovider "${workers[@]}" tests/test_cuda.py -rfE \
   ${TEST_ARGS:-}
-step bench_cuda "${BENCH_LIMIT:-180}" "$PYTHON" bench/bench_cuda.py ${BENCH_ARGS:-} --out "$OUT"
+step bench_cuda "${BENCH_LIMIT:-240}" "$PYTHON" bench/bench_cuda.py ${BENCH_ARGS:-} --out "$OUT"
 # The sanitizers on a decode and a prefill case of every width (they slow the kernels many times).
 gemm_case=tests/test_cuda.py::test_gemm_matches_reference_and_cpu
 prefill_cases=() decode_cases=()

@@ -145,3 +145,33 @@ def test_bench_policy_step_times_the_bitsandbytes_models_when_asked(tmp_path):
     # NF4 below LLM.int8() below bf16: the statistics kept outside the layers' parameters are counted.
     memory = step["model_bytes"]
     assert memory["dyq/fp32"] < memory["bf16"] and memory["bnb_nf4"] < memory["bnb_int8"] < memory["bf16"]
+
+
+def test_bench_cuda_control_step_section_runs_its_models_on_the_cpu():
+    """bench_cuda.py's control-step section (a plain-torch decoder, no transformers on a GPU machine), run here
+    on the CPU at a small size: every model times a step, dyq's at each width, and the decoder's cached decode
+    is the full recompute's."""
+    import torch
+
+    sys.path.insert(0, str(ROOT / "bench"))
+    try:
+        import bench_cuda
+        import decoder_step
+    finally:
+        sys.path.remove(str(ROOT / "bench"))
+    config = {"hidden": 256, "layers": 2, "heads": 4, "mlp": 512, "vocab": 300}
+    result = bench_cuda.control_step_section(0, 2, device="cpu", config=config, prompt=16)
+    expected = {"bf16", *(f"dyq_a{bits}" for bits in dyq.VALID_BITS)}
+    assert expected <= set(result["step_ms"]) and all(ms > 0 for ms in result["step_ms"].values())
+    assert set(result["step_ms"]) - expected == set(bench_cuda.BITSANDBYTES_PEERS) - set(result["peer_errors"])
+    assert result["model_bytes"]["dyq_a8"] < result["model_bytes"]["bf16"]
+    torch.manual_seed(0)
+    model = decoder_step.Decoder(**config).eval()
+    ids = torch.randint(0, 300, (1, 16))
+    tokens = decoder_step.control_step(model, ids)
+    sequence = ids
+    with torch.inference_mode():
+        for _ in range(7):
+            token = model(sequence, model.new_cache(), 0).argmax(-1)
+            sequence = torch.cat([sequence, token], dim=1)
+    assert torch.equal(tokens, sequence[:, 16:])
