@@ -37,7 +37,7 @@ from dyq.results import HostSynchronizes, cuda_device_median_ms, cuda_median_ms,
     interleaved_median_ms, write_json
 
 from bitsandbytes_peers import INPUT_DTYPES as BITSANDBYTES_INPUT_DTYPES, PEERS as BITSANDBYTES_PEERS, \
-    bitsandbytes_layers, bitsandbytes_version, replace_linear_layers
+    bitsandbytes_layers, bitsandbytes_version, model_bytes, replace_linear_layers
 from decoder_step import HALF_BILLION, Decoder, control_step as decoder_control_step
 
 SHAPES = ((4096, 4096), (12288, 4096), (22016, 4096), (4096, 11008))  # (N, K): qkv/o, fused qkv, gate+up, down
@@ -235,11 +235,10 @@ def control_step_section(warmup: int, repeats: int, device: str = "cuda", config
 
     candidates = {name: (prepare, lambda model=model: step(model)) for name, (prepare, model) in models.items()}
     step_ms = interleaved_median_ms(candidates, warmup=warmup, repeats=repeats)
-    memory = {name: sum(t.numel() * t.element_size() for t in {id(t): t for t in [*model.parameters(),
-                                                                                  *model.buffers()]}.values())
-              for name, (_, model) in models.items()}
-    return {"config": config, "parameters": sum(p.numel() for p in bf16.parameters()), "prompt_tokens": prompt, "decoded_tokens": 7, "timing": "eager steps in turns, wall "
-            "time to the last token", "step_ms": step_ms, "model_bytes": memory, "peer_errors": errors}
+    return {"config": config, "parameters": sum(p.numel() for p in bf16.parameters()), "prompt_tokens": prompt,
+            "decoded_tokens": 7, "timing": "eager steps in turns, wall time to the last token", "step_ms": step_ms,
+            "model_bytes": {name: model_bytes(model) for name, (_, model) in models.items()},
+            "peer_errors": errors}
 
 
 def main() -> int:

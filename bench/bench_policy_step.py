@@ -3,8 +3,8 @@ tokens, each one forward with the KV cache, for torch fp32 and bf16 against dyq 
 
 Two Llama configs with random weights (transformers' LlamaConfig, nothing downloaded): the closed-loop
 policy's (python/dyq/sim/policies/*/policy.json) and one of about 0.5 B parameters. The prefill computes
-the logits of its last position only (``logits_to_keep=1`` where transformers has it), as ``generate`` and dyq's own policy do: the
-first action token needs no others.
+the logits of its last position only (``logits_to_keep=1`` where transformers has it), as ``generate`` and
+dyq's own policy do: the first action token needs no others.
 
 dyq runs ``dyq.quantize_model`` on a copy of the model in a base dtype (its LM head and everything outside
 the linear layers stay in that dtype) and then sets the width with ``dyq.set_precision``; the label
@@ -49,8 +49,8 @@ import dyq
 from dyq.results import environment, interleaved_median_ms, print_table, write_json
 from dyq.sim.policy import cached_forward
 
-from bitsandbytes_peers import PEERS as BITSANDBYTES_PEERS, bitsandbytes_version, replace_linear_layers, \
-    statistics_bytes
+from bitsandbytes_peers import PEERS as BITSANDBYTES_PEERS, bitsandbytes_version, model_bytes, \
+    replace_linear_layers
 
 ACTION_TOKENS = 7
 BITS = [16, 8, 4, 2]
@@ -161,14 +161,6 @@ def step_breakdown(model, step) -> dict[str, float]:
             handle.remove()
     own["outside the modules"] = total - sum(own.values())
     return {part: 1e3 * seconds for part, seconds in own.items()}
-
-
-def model_bytes(model) -> int:
-    """Bytes of the model's parameters and buffers, each tensor once (a tied weight is one), and of the
-    statistics of its bitsandbytes layers."""
-    tensors = {id(t): t for t in [*model.parameters(), *model.buffers()]}
-    peers = [m for m in model.modules() if type(m).__module__.startswith("bitsandbytes")]
-    return sum(t.numel() * t.element_size() for t in tensors.values()) + sum(statistics_bytes(m) for m in peers)
 
 
 def default_dyq_bases() -> list[str]:

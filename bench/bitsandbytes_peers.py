@@ -71,6 +71,14 @@ def statistics_bytes(layer: torch.nn.Module) -> int:
     return sum(t.nbytes for t in tensors if isinstance(t, torch.Tensor))
 
 
+def model_bytes(model: torch.nn.Module) -> int:
+    """Bytes of the model's parameters and buffers, each tensor once (a tied weight is one), and of the
+    statistics of its bitsandbytes layers."""
+    tensors = {id(t): t for t in [*model.parameters(), *model.buffers()]}
+    peers = [m for m in model.modules() if type(m).__module__.startswith("bitsandbytes")]
+    return sum(t.numel() * t.element_size() for t in tensors.values()) + sum(statistics_bytes(m) for m in peers)
+
+
 def replace_linear_layers(model: torch.nn.Module, peer: str, skip: tuple[str, ...] = ("lm_head",)) -> int:
     """Put the ``peer`` layer in place of every bias-free ``nn.Linear`` of ``model`` whose name does not end
     in one of ``skip``, as transformers' ``load_in_4bit`` / ``load_in_8bit`` do (the LM head kept); returns
