@@ -73,13 +73,3 @@ def hf_quantizer_unavailable() -> str | None:
     if version.major == 4 and importlib.util.find_spec("accelerate") is None:
         return "transformers 4.x loads quantized checkpoints through accelerate, which is not installed"
     return None
-
-
-def dtype_keyword(dtype) -> dict:
-    """from_pretrained's dtype argument in the installed transformers' name (torch_dtype before 4.56). "auto",
-    the checkpoint's own dtype, is 5.x's default; 4.x loads fp32 without it."""
-    from packaging.version import Version
-
-    import transformers
-
-    return {"dtype" if Version(transformers.__version__) >= Version("4.56") else "torch_dtype": dtype}

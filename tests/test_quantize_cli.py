@@ -6,8 +6,9 @@ import torch
 from packaging.version import Version
 
 import dyq
-from helpers import dtype_keyword, hf_quantizer_unavailable
 from dyq.apps import cli
+from dyq.core.serialization import from_pretrained_dtype
+from helpers import hf_quantizer_unavailable
 
 transformers = pytest.importorskip("transformers")
 pytestmark = pytest.mark.skipif(hf_quantizer_unavailable() is not None, reason=f"{hf_quantizer_unavailable()}")
@@ -54,21 +55,22 @@ def test_the_written_checkpoint_loads_as_the_model_quantize_model_makes(checkpoi
 
 def test_dtype_bfloat16_keeps_what_stays_in_float_in_bf16(checkpoint, tmp_path):
     assert cli.main(["quantize", str(checkpoint), str(tmp_path / "dyq"), "--dtype", "bfloat16"]) == 0
-    expected = transformers.LlamaForCausalLM.from_pretrained(checkpoint, **dtype_keyword(torch.bfloat16)).eval()
+    expected = transformers.LlamaForCausalLM.from_pretrained(
+        checkpoint, **from_pretrained_dtype(torch.bfloat16)).eval()
     dyq.quantize_model(expected, flag=dyq.PrecisionFlag(16))
     if Version(transformers.__version__).major == 4:
         # transformers 4.x would load the fp32 group scales as bf16: refused, with the way out, which loads
         # exactly the saved INT4 layers.
         with pytest.raises(ValueError, match=r"group scales of 7 DyQLinear layers .* as torch\.bfloat16.*"
                                              r"dtype=torch\.float32"):
-            transformers.LlamaForCausalLM.from_pretrained(tmp_path / "dyq", **dtype_keyword("auto"))
-        loaded = transformers.LlamaForCausalLM.from_pretrained(tmp_path / "dyq", **dtype_keyword(torch.float32))
+            transformers.LlamaForCausalLM.from_pretrained(tmp_path / "dyq", **from_pretrained_dtype("auto"))
+        loaded = transformers.LlamaForCausalLM.from_pretrained(tmp_path / "dyq", **from_pretrained_dtype(torch.float32))
         for name, layer in expected.named_modules():
             if isinstance(layer, dyq.DyQLinear):
                 saved = loaded.get_submodule(name)
                 assert torch.equal(saved.qweight, layer.qweight) and torch.equal(saved.scales, layer.scales), name
         return
-    loaded = transformers.LlamaForCausalLM.from_pretrained(tmp_path / "dyq", **dtype_keyword("auto"))
+    loaded = transformers.LlamaForCausalLM.from_pretrained(tmp_path / "dyq", **from_pretrained_dtype("auto"))
     assert loaded.model.embed_tokens.weight.dtype == torch.bfloat16 and loaded.lm_head.weight.dtype == torch.bfloat16
     assert loaded.model.layers[0].self_attn.q_proj.scales.dtype == torch.float32
     with torch.no_grad():

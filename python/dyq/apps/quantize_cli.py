@@ -21,9 +21,9 @@ from pathlib import Path
 
 from ..core.precision import GROUP_SIZES, VALID_BITS
 from ..core.quantize import DEFAULT_SKIP
+from ..core.weight_methods import CALIBRATED_METHODS, METHODS
 from .usage import UsageError, input_dir, input_file, output_dir, require
 
-METHODS = ("rtn", "mse", "awq", "gptq")
 WEIGHT_SUFFIXES = (".safetensors", ".bin", ".pt", ".pth", ".ckpt", ".h5", ".msgpack")
 WRITTEN_BY_SAVE = ("config.json", "generation_config.json")
 DTYPES = ("auto", "float32", "bfloat16", "float16")
@@ -62,9 +62,8 @@ def _calibration_ids(path: Path):
 def main(args: argparse.Namespace) -> int:
     transformers = require("transformers", "dyq quantize")
     import dyq
-    from packaging.version import Version
 
-    from ..core.serialization import WEIGHT_METHOD_NAMES, transformers_model_class
+    from ..core.serialization import WEIGHT_METHOD_NAMES, from_pretrained_dtype, transformers_model_class
 
     try:  # OUT is read back through the quantizer: refuse before loading a model that could not be written
         dyq.DyQConfig
@@ -75,10 +74,11 @@ def main(args: argparse.Namespace) -> int:
         raise UsageError(f"{args.src} has no config.json: expected a Hugging Face checkpoint folder")
     if args.src.resolve() == args.out.resolve():
         raise UsageError("OUT must differ from SRC: the float checkpoint would be overwritten")
-    if args.method in ("awq", "gptq") and args.calibration is None:
+    if args.method in CALIBRATED_METHODS and args.calibration is None:
         raise UsageError(f"--method {args.method} needs --calibration (token ids [batch, seq])")
-    if args.method not in ("awq", "gptq") and args.calibration is not None:
-        raise UsageError(f"--calibration is only used by --method awq and gptq, not {args.method}")
+    if args.method not in CALIBRATED_METHODS and args.calibration is not None:
+        raise UsageError(f"--calibration is only used by --method {' and '.join(CALIBRATED_METHODS)}, "
+                         f"not {args.method}")
     calibration = _calibration_ids(args.calibration) if args.calibration is not None else None
     skip = tuple(args.skip) if args.skip else DEFAULT_SKIP
 
@@ -87,9 +87,7 @@ def main(args: argparse.Namespace) -> int:
 
     dtype = "auto" if args.dtype == "auto" else getattr(torch, args.dtype)
     model_class = transformers_model_class(config, "AutoModelForCausalLM")
-    # transformers 4.56 renamed from_pretrained's torch_dtype to dtype.
-    dtype_keyword = "dtype" if Version(transformers.__version__) >= Version("4.56") else "torch_dtype"
-    model = model_class.from_pretrained(args.src, local_files_only=True, **{dtype_keyword: dtype}).eval()
+    model = model_class.from_pretrained(args.src, local_files_only=True, **from_pretrained_dtype(dtype)).eval()
     report = dyq.quantize_model(model, group_size=args.group_size, skip=skip, act_bits=args.act_bits,
                                 flag=dyq.PrecisionFlag(args.act_bits), method=args.method, calibration=calibration)
     print(report)

@@ -129,6 +129,15 @@ def transformers_model_class(config, *fallbacks: str):
     return next((getattr(transformers, name) for name in names if name and hasattr(transformers, name)), None)
 
 
+def from_pretrained_dtype(dtype) -> dict[str, Any]:
+    """``from_pretrained``'s dtype argument (a torch dtype or "auto", the checkpoint's own) under the name the
+    installed transformers takes: ``dtype`` from 4.56, ``torch_dtype`` before."""
+    import transformers
+    from packaging.version import Version
+
+    return {"dtype" if Version(transformers.__version__) >= Version("4.56") else "torch_dtype": dtype}
+
+
 def _model_from_config(config, state: dict[str, Any]) -> nn.Module:
     """A Hugging Face model built from its config (no download): the class its ``architectures`` names,
     or else the class the saved model had; in eval mode, as ``from_pretrained`` returns it (a model built
