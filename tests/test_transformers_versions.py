@@ -30,7 +30,8 @@ class RecordingModel:
 ])
 def test_cached_forward_speaks_each_versions_names_and_passes_on_the_returned_cache(monkeypatch, parameters,
                                                                                     logits_keyword):
-    monkeypatch.setattr(policy, "_forward_parameters", lambda: frozenset(parameters | {"input_ids", "use_cache"}))
+    monkeypatch.setattr(policy, "_forward_keywords",
+                        lambda: policy.forward_keywords(parameters | {"input_ids", "use_cache"}))
     cache_name = "cache" if "cache" in parameters else "past_key_values"
     model = RecordingModel(cache_name)
     _, first = policy.cached_forward(model, torch.zeros(1, 5, dtype=torch.long))

@@ -35,18 +35,25 @@ TASK_INDEX = "task_index"
 CONFIG_FILE = "policy.json"
 
 
+def forward_keywords(parameters) -> tuple[str, str | None]:
+    """(the KV cache's keyword, the kept logits' keyword or None) of a causal LM's forward with ``parameters``."""
+    logits = next((name for name in ("logits_to_keep", "num_logits_to_keep") if name in parameters), None)
+    return ("cache" if "cache" in parameters else "past_key_values"), logits
+
+
 @functools.lru_cache(maxsize=None)
-def _forward_parameters() -> frozenset[str]:
+def _forward_keywords() -> tuple[str, str | None]:
+    """forward_keywords of the installed transformers (read once: cached_forward runs on every decoded token)."""
     import inspect
 
     from transformers import LlamaForCausalLM
 
-    return frozenset(inspect.signature(LlamaForCausalLM.forward).parameters)
+    return forward_keywords(inspect.signature(LlamaForCausalLM.forward).parameters)
 
 
 def cache_keyword() -> str:
     """transformers 5 renamed the KV-cache argument and output from ``past_key_values`` to ``cache``."""
-    return "cache" if "cache" in _forward_parameters() else "past_key_values"
+    return _forward_keywords()[0]
 
 
 def cached_forward(model, input_ids: torch.Tensor, cache=None, **inputs) -> tuple[Any, Any]:
@@ -56,12 +63,9 @@ def cached_forward(model, input_ids: torch.Tensor, cache=None, **inputs) -> tupl
     (``past_key_values`` before), a ``DynamicCache`` that grows in place where transformers makes one, tuples
     that each call returns anew in 4.4x; the logits kept are ``logits_to_keep`` (``num_logits_to_keep`` in
     4.45 to 4.49; before that every position's logits are computed, and the caller reads the last)."""
-    keyword = cache_keyword()
-    keywords = {"use_cache": True, **({keyword: cache} if cache is not None else {})}
-    for name in ("logits_to_keep", "num_logits_to_keep"):
-        if name in _forward_parameters():
-            keywords[name] = 1
-            break
+    keyword, logits = _forward_keywords()
+    keywords = {"use_cache": True, **({keyword: cache} if cache is not None else {}),
+                **({logits: 1} if logits is not None else {})}
     out = model(input_ids=input_ids, **inputs, **keywords)
     return out, out[keyword]
 
