@@ -96,11 +96,11 @@ class DyQHfQuantizer(HfQuantizer):
             layers = [(name, module) for name, module in model.named_modules() if isinstance(module, DyQLinear)]
             # transformers 4.x casts every floating tensor of a quantized checkpoint to the model's dtype, the fp32
             # group scales included (5.x keeps them): the numerics would change without a word.
-            rounded = [name for name, layer in layers if layer.scales.dtype != torch.float32]
+            rounded = [(name, layer.scales.dtype) for name, layer in layers if layer.scales.dtype != torch.float32]
             if rounded:
                 raise ValueError(
                     f"transformers {transformers.__version__} loaded the fp32 group scales of {len(rounded)} DyQLinear "
-                    f"layers ({rounded[0]}, ...) as {model.get_submodule(rounded[0]).scales.dtype}, which would change "
+                    f"layers ({rounded[0][0]}, ...) as {rounded[0][1]}, which would change "
                     "their numerics: load with dtype=torch.float32 (torch_dtype before transformers 4.56; "
                     "model.to(torch.bfloat16) afterwards keeps the scales in fp32), or with transformers 5")
             for _, module in layers:
