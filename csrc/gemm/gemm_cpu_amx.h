@@ -545,6 +545,13 @@ constexpr int64_t kAmxPanelsPerPass = Kind::kDequantizedWeights ? 8 : 2;
 template <typename Tiles, typename Kind, typename Panel, typename Element>
 bool amx_gemm(const Element* x, const uint8_t* qweight, const float* scales, const Element* bias, int64_t m, int64_t n,
               int64_t k, int group_size, int act_bits, Element* out) {
+  if (k == 0) {
+    // No column: no slice runs the loop below, whose last slice writes the outputs. Each is its bias (or 0).
+    const std::vector<float> zeros(n, 0.0f);
+    FiniteOutputs finite;
+    for (int64_t r = 0; r < m; ++r) finite.note(store_row_from_fp32(zeros.data(), bias, n, out + r * n));
+    return finite.all();
+  }
   constexpr int64_t kPanelsPerPass = kAmxPanelsPerPass<Kind>;
   const AmxActivations<Kind> a = amx_activations<Kind>(x, m, k, group_size, act_bits);
   const int64_t step_bytes = a.step_bytes;

@@ -79,6 +79,32 @@ TEST_P(AmxTileLoopTest, AmxTilesMatchTheNaiveReference) {
   }
 }
 
+// K = 0: the loop has no slice to run, and every output must still be its bias, on 16 to 40 rows and part
+// of a panel, one panel and two.
+TEST_P(AmxTileLoopTest, NoColumnsGiveTheBias) {
+  const int act_bits = GetParam();
+  const dyq::cpu::CpuPath* amx = nullptr;
+  for (const auto* path : dyq::cpu::runnable_cpu_paths()) {
+    if (std::string(path->name) == "amx") amx = path;
+  }
+  for (const int64_t m : {16, 40}) {
+    for (const int64_t n : {37, 32, 64}) {
+      const auto bias = naive::random_values(n, 17u + static_cast<uint32_t>(n));
+      const std::vector<float> x(1), scales(1);
+      const std::vector<uint8_t> qweight(1);
+      std::vector<float> out(m * n, -12345.0f);
+      dyq::cpu::amx_emulated_gemm(x.data(), qweight.data(), scales.data(), bias.data(), m, n, 0, 32, act_bits,
+                                  out.data());
+      for (int64_t i = 0; i < m * n; ++i) ASSERT_EQ(out[i], bias[i % n]) << "emulated m " << m << " n " << n;
+      if (amx == nullptr) continue;
+      std::fill(out.begin(), out.end(), -12345.0f);
+      amx->kernels->gemm(x.data(), dyq::ScalarType::kFloat32, qweight.data(), scales.data(), bias.data(), m, n, 0, 32,
+                         act_bits, out.data());
+      for (int64_t i = 0; i < m * n; ++i) ASSERT_EQ(out[i], bias[i % n]) << "amx m " << m << " n " << n;
+    }
+  }
+}
+
 // 2, 4 and 8 through AMX-INT8, 16 (the fallback) through AMX-BF16.
 INSTANTIATE_TEST_SUITE_P(EveryWidth, AmxTileLoopTest, ::testing::Values(2, 4, 8, 16));
 
