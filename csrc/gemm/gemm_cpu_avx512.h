@@ -1161,8 +1161,16 @@ inline bool use_dequantized_panel(int64_t m, int64_t k) {
 
 #if defined(DYQ_AVX512_HAS_AMX)
 // From this many activation rows on, the AMX tiles (two A tiles of 16 rows), unpacking the weights with the
-// panel packers above (gemm/gemm_cpu_amx.h).
+// panel packers above (gemm/gemm_cpu_amx.h). The tile loop's cost hardly depends on the rows below 32 (it is
+// mostly the unpacking of every weight), and W4A16 goes to it from 6 rows: on the Intel Xeon with AMX (Emerald
+// Rapids, one thread, hot weights, C++ loop) its tiles took about 3 ms on 4096 x 4096 and 8 ms on 11008 x 4096
+// and 4096 x 11008 from 1 to 15 rows, where the bf16 dot products of the AVX-512 kernels, which cost twice
+// as many cycles there as on the AMD EPYC, grew with the rows: 2.5 ms at 4 rows, 3.6 at 6, 4.3 at 8 and 7.7 at
+// 15 on 4096 x 4096 (14 ms at 8 rows on the 11008-wide shapes). The integer row and panel kernels stay
+// below the tiles' 1.6 ms up to 15 rows.
 constexpr int64_t kAmxMinRows = 16;
+constexpr int64_t kAmxFallbackMinRows = 6;
+inline int64_t amx_min_rows(int act_bits) { return act_bits == kFallbackBits ? kAmxFallbackMinRows : kAmxMinRows; }
 static_assert(kPanelColumns == kAmxPanelColumns && kPanelDepth == kAmxPanelDepth && kQuadColumns == kAmxQuadColumns,
               "the AMX tile loop reads the panels' layout");
 // The VNNI panel without the sums of q_w, which the centered codes of act_bits 2 and 4 do not need.
@@ -1181,7 +1189,7 @@ bool gemm_typed(const Element* x, const uint8_t* qweight, const float* scales, c
                 int64_t k, int group_size, Element* out) {
   if constexpr (ActivationTraits<kBits>::kQuantized) {
 #if defined(DYQ_AVX512_HAS_AMX)
-    if (m >= kAmxMinRows) {
+    if (m >= amx_min_rows(kBits)) {
       if constexpr (kBits <= 4) {
         return amx_gemm<NativeTiles, AmxInt8Centered, WeightPanel<VnniPanelUnsummed>>(x, qweight, scales, bias, m,
                                                                                      n, k, group_size, kBits, out);
@@ -1209,7 +1217,7 @@ bool gemm_typed(const Element* x, const uint8_t* qweight, const float* scales, c
         });
   } else {
 #if defined(DYQ_AVX512_HAS_AMX)
-    if (m >= kAmxMinRows) {
+    if (m >= amx_min_rows(kBits)) {
       return amx_gemm<NativeTiles, AmxBf16, WeightPanel<DequantizedBf16Panel<kAmxPanelDepth>>>(
           x, qweight, scales, bias, m, n, k, group_size, kBits, out);
     }
@@ -1261,7 +1269,7 @@ bool gemm_typed(const Element* x, const uint8_t* qweight, const float* scales, c
 inline const char* gemm_kernel(int64_t m, int64_t k, int, int act_bits) {
   const bool panel = use_panels(m, k, act_bits);
 #if defined(DYQ_AVX512_HAS_AMX)
-  if (m >= kAmxMinRows) return act_bits != kFallbackBits ? DYQ_ISA_NAME "/tiles-amx-int8" : DYQ_ISA_NAME "/tiles-amx-bf16-dequantized";
+  if (m >= amx_min_rows(act_bits)) return act_bits != kFallbackBits ? DYQ_ISA_NAME "/tiles-amx-int8" : DYQ_ISA_NAME "/tiles-amx-bf16-dequantized";
 #endif
   if (act_bits != kFallbackBits) return panel ? DYQ_ISA_NAME "/panel-vnni" : DYQ_ISA_NAME "/rows-vnni";
 #if defined(DYQ_AVX512_HAS_BF16)
