@@ -625,15 +625,20 @@ bool amx_gemm(const Element* x, const uint8_t* qweight, const float* scales, con
             const uint8_t* a_tile = a_steps;
             const uint8_t* b_tile = b_steps;
             // One step of the 2 x 2 tiles, each operand loaded just before its first product.
+            // A block of 16 rows or fewer (M <= 16, or the rows' last block) has nothing in its lower A tile:
+            // its C2 and C3 are neither computed nor loaded or stored, half the block's tile work.
+            const bool lower_half = m - row_begin > kAmxTileRows;
             auto step = [&] {
               tiles.template load<4>(a_tile, step_bytes);
               tiles.template load<6>(b_tile, kBStride);
               Kind::template product<0, 4, 6>(tiles);
               tiles.template load<7>(b_tile + 64, kBStride);
               Kind::template product<1, 4, 7>(tiles);
-              tiles.template load<5>(a_tile + kAmxTileRows * step_bytes, step_bytes);
-              Kind::template product<2, 5, 6>(tiles);
-              Kind::template product<3, 5, 7>(tiles);
+              if (lower_half) {
+                tiles.template load<5>(a_tile + kAmxTileRows * step_bytes, step_bytes);
+                Kind::template product<2, 5, 6>(tiles);
+                Kind::template product<3, 5, 7>(tiles);
+              }
               a_tile += a_step_bytes;
               b_tile += b_step_bytes;
             };
@@ -644,26 +649,34 @@ bool amx_gemm(const Element* x, const uint8_t* qweight, const float* scales, con
               constexpr int64_t kLowerHalf = kAmxTileRows * kTotalsStride, kRightHalf = 64;
               tiles.template load<0>(block_bytes, kTotalsStride);
               tiles.template load<1>(block_bytes + kRightHalf, kTotalsStride);
-              tiles.template load<2>(block_bytes + kLowerHalf, kTotalsStride);
-              tiles.template load<3>(block_bytes + kLowerHalf + kRightHalf, kTotalsStride);
+              if (lower_half) {
+                tiles.template load<2>(block_bytes + kLowerHalf, kTotalsStride);
+                tiles.template load<3>(block_bytes + kLowerHalf + kRightHalf, kTotalsStride);
+              }
               for (int64_t s = 0, steps = slice_groups * steps_per_group; s < steps; ++s) step();
               tiles.template store<0>(block_bytes, kTotalsStride);
               tiles.template store<1>(block_bytes + kRightHalf, kTotalsStride);
-              tiles.template store<2>(block_bytes + kLowerHalf, kTotalsStride);
-              tiles.template store<3>(block_bytes + kLowerHalf + kRightHalf, kTotalsStride);
+              if (lower_half) {
+                tiles.template store<2>(block_bytes + kLowerHalf, kTotalsStride);
+                tiles.template store<3>(block_bytes + kLowerHalf + kRightHalf, kTotalsStride);
+              }
               if (last_slice) write_outputs(i, row_begin, std::min(kAmxRowBlock, m - row_begin), block_totals);
             } else {
               for (int64_t group = 0; group < slice_groups; ++group) {
                 tiles.template zero<0>();
                 tiles.template zero<1>();
-                tiles.template zero<2>();
-                tiles.template zero<3>();
+                if (lower_half) {
+                  tiles.template zero<2>();
+                  tiles.template zero<3>();
+                }
                 for (int64_t s = 0; s < steps_per_group; ++s) step();
                 if (pending.row_begin >= 0) scale_into_totals(pending, sums[buffer ^ 1]);
                 tiles.template store<0>(&sums[buffer][0][0], kBStride);
                 tiles.template store<1>(&sums[buffer][0][16], kBStride);
-                tiles.template store<2>(&sums[buffer][16][0], kBStride);
-                tiles.template store<3>(&sums[buffer][16][16], kBStride);
+                if (lower_half) {
+                  tiles.template store<2>(&sums[buffer][16][0], kBStride);
+                  tiles.template store<3>(&sums[buffer][16][16], kBStride);
+                }
                 pending = {row_begin, std::min(kAmxRowBlock, m - row_begin), group, slice_group + group, i};
                 buffer ^= 1;
               }
