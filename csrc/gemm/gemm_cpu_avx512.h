@@ -1161,13 +1161,14 @@ inline bool use_dequantized_panel(int64_t m, int64_t k) {
 
 #if defined(DYQ_AVX512_HAS_AMX)
 // From this many activation rows on, the AMX tiles (two A tiles of 16 rows), unpacking the weights with the
-// panel packers above (gemm/gemm_cpu_amx.h). The tile loop's cost hardly depends on the rows below 32 (it is
-// mostly the unpacking of every weight), and W4A16 goes to it from 6 rows: on the Intel Xeon with AMX (Emerald
-// Rapids, one thread, hot weights, C++ loop) its tiles took about 3 ms on 4096 x 4096 and 8 ms on 11008 x 4096
-// and 4096 x 11008 from 1 to 15 rows, where the bf16 dot products of the AVX-512 kernels, which cost twice
-// as many cycles there as on the AMD EPYC, grew with the rows: 2.5 ms at 4 rows, 3.6 at 6, 4.3 at 8 and 7.7 at
-// 15 on 4096 x 4096 (14 ms at 8 rows on the 11008-wide shapes). The integer row and panel kernels stay
-// below the tiles' 1.6 ms up to 15 rows.
+// panel packers above (gemm/gemm_cpu_amx.h). The tile loop's cost hardly depends on the rows up to 16 (its
+// work on every weight dominates), and W4A16 goes to it from 6 rows: on the Intel Xeon with AMX (Emerald
+// Rapids, one thread, hot weights, C++ loop) its tiles took about 3 ms on 4096 x 4096 and 8 ms on 11008 x
+// 4096 and 4096 x 11008 from 1 to 15 rows, where the bf16 dot products of the AVX-512 kernels, which cost
+// twice as many cycles there as on the AMD EPYC, grew with the rows: 2.5 ms at 4 rows, 3.6 at 6, 4.3 at 8
+// and 7.7 at 15 on 4096 x 4096 (14 ms at 8 rows on the 11008-wide shapes). The integer row and panel
+// kernels stay below the tiles' 1.6 ms up to 15 rows (timed before the tiles skipped the empty half of a
+// block of 16 rows or fewer).
 constexpr int64_t kAmxMinRows = 16;
 constexpr int64_t kAmxFallbackMinRows = 6;
 inline int64_t amx_min_rows(int act_bits) { return act_bits == kFallbackBits ? kAmxFallbackMinRows : kAmxMinRows; }

@@ -53,6 +53,14 @@ const AmxProblem kProblems[] = {{1, 40, 256, 128}, {17, 33, 192, 64}, {32, 64, 1
 
 class AmxTileLoopTest : public ::testing::TestWithParam<int> {};
 
+// The "amx" CPU path where this CPU runs it, else nullptr.
+const dyq::cpu::CpuPath* amx_path() {
+  for (const auto* path : dyq::cpu::runnable_cpu_paths()) {
+    if (std::string(path->name) == "amx") return path;
+  }
+  return nullptr;
+}
+
 TEST_P(AmxTileLoopTest, EmulatedTilesMatchTheNaiveReference) {
   const int act_bits = GetParam();
   for (const AmxProblem& p : kProblems) {
@@ -64,10 +72,7 @@ TEST_P(AmxTileLoopTest, EmulatedTilesMatchTheNaiveReference) {
 }
 
 TEST_P(AmxTileLoopTest, AmxTilesMatchTheNaiveReference) {
-  const dyq::cpu::CpuPath* amx = nullptr;
-  for (const auto* path : dyq::cpu::runnable_cpu_paths()) {
-    if (std::string(path->name) == "amx") amx = path;
-  }
+  const dyq::cpu::CpuPath* amx = amx_path();
   if (amx == nullptr) GTEST_SKIP() << "this CPU has no AMX-INT8 and AMX-BF16 (or the OS did not grant the tile state)";
   const int act_bits = GetParam();
   for (const AmxProblem& p : kProblems) {
@@ -83,10 +88,7 @@ TEST_P(AmxTileLoopTest, AmxTilesMatchTheNaiveReference) {
 // of a panel, one panel and two.
 TEST_P(AmxTileLoopTest, NoColumnsGiveTheBias) {
   const int act_bits = GetParam();
-  const dyq::cpu::CpuPath* amx = nullptr;
-  for (const auto* path : dyq::cpu::runnable_cpu_paths()) {
-    if (std::string(path->name) == "amx") amx = path;
-  }
+  const dyq::cpu::CpuPath* amx = amx_path();
   for (const int64_t m : {16, 40}) {
     for (const int64_t n : {37, 32, 64}) {
       const auto bias = naive::random_values(n, 17u + static_cast<uint32_t>(n));
