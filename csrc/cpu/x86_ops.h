@@ -75,6 +75,32 @@ inline __m512i i32gather_epi32(__m512i index, const void* base) {
   return _mm512_mask_i32gather_epi32(_mm512_setzero_si512(), kAll16, index, base, 1);
 }
 
+// rows[i] (dwords 0..15 of row i) becomes rows[q] = dword q of rows 0..15 (vector lane i).
+inline void transpose_16x16_dwords(__m512i rows[16]) {
+  __m512i t[16], u[16];
+  for (int i = 0; i < 8; ++i) {
+    t[2 * i] = _mm512_maskz_unpacklo_epi32(kAll16, rows[2 * i], rows[2 * i + 1]);
+    t[2 * i + 1] = _mm512_maskz_unpackhi_epi32(kAll16, rows[2 * i], rows[2 * i + 1]);
+  }
+  // u[4i + j], 128-bit lane L: column 4L + j of rows 4i..4i+3.
+  for (int i = 0; i < 4; ++i) {
+    u[4 * i] = _mm512_maskz_unpacklo_epi64(0xFF, t[4 * i], t[4 * i + 2]);
+    u[4 * i + 1] = _mm512_maskz_unpackhi_epi64(0xFF, t[4 * i], t[4 * i + 2]);
+    u[4 * i + 2] = _mm512_maskz_unpacklo_epi64(0xFF, t[4 * i + 1], t[4 * i + 3]);
+    u[4 * i + 3] = _mm512_maskz_unpackhi_epi64(0xFF, t[4 * i + 1], t[4 * i + 3]);
+  }
+  for (int j = 0; j < 4; ++j) {
+    const __m512i s0 = _mm512_maskz_shuffle_i32x4(kAll16, u[j], u[4 + j], 0x44);
+    const __m512i s1 = _mm512_maskz_shuffle_i32x4(kAll16, u[j], u[4 + j], 0xEE);
+    const __m512i s2 = _mm512_maskz_shuffle_i32x4(kAll16, u[8 + j], u[12 + j], 0x44);
+    const __m512i s3 = _mm512_maskz_shuffle_i32x4(kAll16, u[8 + j], u[12 + j], 0xEE);
+    rows[j] = _mm512_maskz_shuffle_i32x4(kAll16, s0, s2, 0x88);
+    rows[4 + j] = _mm512_maskz_shuffle_i32x4(kAll16, s0, s2, 0xDD);
+    rows[8 + j] = _mm512_maskz_shuffle_i32x4(kAll16, s1, s3, 0x88);
+    rows[12 + j] = _mm512_maskz_shuffle_i32x4(kAll16, s1, s3, 0xDD);
+  }
+}
+
 // Op folded over the 16 lanes of v. The header's _mm512_reduce_* and _mm512_castps512_ps256 split the
 // vector with the unmasked extract.
 template <typename Op>

@@ -11,13 +11,7 @@
 //   so that the C tiles hold P = sum (q_x - z_x) q_w itself, the same integer: the epilogue saves the
 //   z_x sum q_w term (a quarter of its vector work, which does not overlap the tile products) and the
 //   panels their sums of q_w.
-// - AmxBf16 (act_bits 16): tdpbf16ps of x rounded to bf16 (round to nearest even) with the dequantized
-//   weights q_w s_w, formed in fp32 and rounded to bf16 when the panels are unpacked (products below fp32's
-//   normal range count as 0, as vcvtne2ps2bf16 reads them). Having no per-group scale left to apply, the
-//   C tiles accumulate a whole slice and are added to the running totals by the tile unit itself (tile
-//   loads and stores of the totals once per slice): neither the per-group tile stores nor the vector
-//   epilogue of the integer kinds, which together cost more than the bf16 products. Like vdpbf16ps,
-//   tdpbf16ps treats bf16 denormals as 0 and flushes fp32 denormal results.
+// - act_bits 16 has a loop of its own, with the weights as the A operand (amx_bf16_gemm, below).
 //
 // Weight panels. 32 output rows at a time, over a slice of kAmxPanelDepth columns, are unpacked once
 // into the layout of the AVX-512 panel path (gemm/gemm_cpu_avx512.h, WeightPanel): steps[quad][step][32]
@@ -28,8 +22,6 @@
 // - AmxInt8 has two steps per quad, the s8 codes of the even columns 8q, 8q + 2, 8q + 4, 8q + 6, then
 //   of the odd ones; the activation codes are stored in the same order within every 8 columns, so that
 //   A's dword i meets B's row i.
-// - AmxBf16 has four steps per quad, the bf16 pairs of columns (8q + 2b, 8q + 2b + 1) of q_w s_w, which is
-//   the natural order of x's bf16 pairs.
 // The native path unpacks with the AVX-512 panel packers, once per slice and panel for every activation
 // row, so that unpacking is a small share of the tile work (the scalar unpacking of every call's whole
 // weight matrix that came before cost more than the tile products themselves); the emulation unpacks the
@@ -37,11 +29,11 @@
 //
 // Tiles: C0..C3 = the 2 x 2 accumulators of 32 activation rows x 32 output columns, A0/A1 = 16 activation
 // rows x a step's bytes, B0/B1 = a step's bytes / 4 rows x 64 bytes. A step is 64 bytes of A (64 columns
-// of u8 codes, 32 of bf16), or the group's bytes where the group is smaller, so that a group is a whole
-// number of steps.
+// of codes), or the group's bytes where the group is smaller, so that a group is a whole number of steps.
 #pragma once
 
 #include <algorithm>
+#include <array>
 #include <cmath>
 #include <cstdint>
 #include <cstring>
@@ -97,19 +89,16 @@ inline uint16_t dequantized_bf16_bits(int code, float scale) {
 // most 15) and multiplies with tdpbssd; otherwise u8 codes q_x with tdpbusd and z_x sum q_w in the epilogue.
 template <bool kCenteredCodes>
 struct AmxInt8Kind {
-  static constexpr int64_t kElementBytes = 1;  // bytes of one activation column in A
   static constexpr int64_t kStepsPerQuad = 2;  // B rows per 8 columns
-  static constexpr bool kQuantized = true;     // codes with z_x and s_x
   static constexpr bool kCentered = kCenteredCodes;
   static constexpr bool kWeightSums = !kCenteredCodes;  // sum q_w per group, for the z_x term
-  static constexpr bool kDequantizedWeights = false;     // codes in the panels, scales in the epilogue
   // The A bytes of 8 columns from their codes: the even columns, then the odd ones.
   static void quad_bytes(const uint8_t* codes, uint8_t* out) {
     for (int i = 0; i < 4; ++i) out[i] = codes[2 * i], out[4 + i] = codes[2 * i + 1];
   }
   // The dword of step s of quad q for one output row (packed weights `row`; columns past k are 0); the
   // codes themselves (the group's scale is applied in the epilogue).
-  static uint32_t step_dword(const uint8_t* row, int64_t k, int64_t quad, int s, float /*scale*/) {
+  static uint32_t step_dword(const uint8_t* row, int64_t k, int64_t quad, int s) {
     uint32_t dword = 0;
     for (int b = 0; b < 4; ++b) {
       const int64_t c = quad * kAmxQuadColumns + 2 * b + s;
@@ -129,35 +118,6 @@ struct AmxInt8Kind {
 };
 using AmxInt8 = AmxInt8Kind<false>;
 using AmxInt8Centered = AmxInt8Kind<true>;
-
-struct AmxBf16 {
-  static constexpr int64_t kElementBytes = 2;
-  static constexpr int64_t kStepsPerQuad = 4;
-  static constexpr bool kQuantized = false;
-  static constexpr bool kCentered = false;
-  static constexpr bool kWeightSums = false;
-  static constexpr bool kDequantizedWeights = true;
-  // The A bytes of 8 columns: their bf16 bit patterns, in column order.
-  static void quad_bytes(const float* values, uint8_t* out) {
-    for (int i = 0; i < 8; ++i) {
-      const uint16_t bits = bf16_bits(values[i]);
-      std::memcpy(out + 2 * i, &bits, 2);
-    }
-  }
-  // The bf16 pair of q_w s_w; `scale` is s_w of the quad's group (a group is a whole number of quads).
-  static uint32_t step_dword(const uint8_t* row, int64_t k, int64_t quad, int s, float scale) {
-    uint32_t dword = 0;
-    for (int b = 0; b < 2; ++b) {
-      const int64_t c = quad * kAmxQuadColumns + 2 * s + b;
-      dword |= uint32_t{dequantized_bf16_bits(c < k ? weight_code(row, c) : 0, scale)} << (16 * b);
-    }
-    return dword;
-  }
-  template <int kC, int kA, int kB, typename Tiles>
-  static void product(Tiles& tiles) {
-    tiles.template dpbf16ps<kC, kA, kB>();
-  }
-};
 
 // The tile registers in memory, with the operations the loop uses, each as the AMX instruction defines it.
 struct EmulatedTiles {
@@ -286,15 +246,15 @@ struct NativeTiles {
 // rows), within a block step by step, the step's bytes of the block's 32 rows. So a tile load reads 1 KiB
 // in one run (rows k bytes apart would fall into the same few sets of the L1 cache at k = 4096), and a
 // panel's pass over the activations reads them in one sequence, which the prefetchers follow. Every 8
-// columns are laid out by Kind::quad_bytes, zero past k up to whole groups. AmxInt8: u8 codes and each
-// (row, group)'s z_x and s_x; AmxBf16: bf16 bit patterns.
+// columns are laid out by Kind::quad_bytes, zero past k up to whole groups: the codes (u8 q_x, or s8
+// q_x - z_x), and each (row, group)'s z_x and s_x.
 template <typename Kind>
 struct AmxActivations {
   int64_t rows = 0, groups = 0, step_bytes = 0, steps = 0;  // steps: of all the padded columns
   std::unique_ptr<uint8_t[]> bytes;  // left uninitialized: amx_activations writes every byte
-  std::vector<float> zeros, scales;  // [m][groups], AmxInt8
+  std::vector<float> zeros, scales;  // [m][groups]
 
-  int64_t step_columns() const { return step_bytes / Kind::kElementBytes; }
+  int64_t step_columns() const { return step_bytes; }  // a byte per column
   // The byte of (row, column), column a multiple of 8.
   int64_t offset(int64_t row, int64_t column) const {
     const int64_t steps_per_slice = kAmxPanelDepth / step_columns();
@@ -303,7 +263,7 @@ struct AmxActivations {
     const int64_t step = column % kAmxPanelDepth / step_columns();
     const int64_t line = slice * steps_per_slice * rows + (row / kAmxRowBlock * slice_steps + step) * kAmxRowBlock +
                          row % kAmxRowBlock;
-    return line * step_bytes + column % step_columns() * Kind::kElementBytes;
+    return line * step_bytes + column % step_columns();
   }
   // The A tile of rows [row_begin, row_begin + 16) (row_begin a multiple of 16) at `column` (a multiple
   // of step_columns()); its rows are stride() bytes apart.
@@ -317,10 +277,7 @@ struct AmxActivations {
 };
 
 // The bytes of A's rows in one step (the header's "Tiles").
-template <typename Kind>
-int64_t amx_step_bytes(int group_size) {
-  return std::min<int64_t>(kAmxMaxStepBytes, group_size * Kind::kElementBytes);
-}
+inline int64_t amx_step_bytes(int group_size) { return std::min<int64_t>(kAmxMaxStepBytes, group_size); }
 
 // The A bytes of one step of the int8 kind from its codes in column order (step_columns a multiple of 16):
 // within every 8 columns the even ones, then the odd ones (AmxInt8::quad_bytes), one byte shuffle per 16
@@ -337,7 +294,15 @@ inline void int8_step_bytes(const uint8_t* codes, int64_t step_columns, uint8_t*
 #endif
 }
 
-// The A bytes of one bf16 step from its fp32 values, of which the first `columns_in_k` exist (zeros past
+// The bf16 bit patterns of 8 fp32 values, in column order.
+inline void bf16_quad_bytes(const float* values, uint8_t* out) {
+  for (int i = 0; i < 8; ++i) {
+    const uint16_t bits = bf16_bits(values[i]);
+    std::memcpy(out + 2 * i, &bits, 2);
+  }
+}
+
+// The bf16 bytes of one step from its fp32 values, of which the first `columns_in_k` exist (zeros past
 // k, the tail of the last group, which the fp32 input does not hold). A whole 32-column step goes through
 // vcvtne2ps2bf16 where it is compiled in; that instruction reads fp32 denormals as 0 where the format
 // rounds them (bf16_bits), so a step that holds one is converted one value at a time.
@@ -354,11 +319,11 @@ inline void bf16_step_bytes(const float* values, int64_t columns_in_k, int64_t s
 #endif
   for (int64_t c = 0; c < step_columns; c += kAmxQuadColumns) {
     if (c + kAmxQuadColumns <= columns_in_k) {
-      AmxBf16::quad_bytes(values + c, out + 2 * c);
+      bf16_quad_bytes(values + c, out + 2 * c);
     } else {
       float quad[kAmxQuadColumns] = {};
       for (int64_t i = 0; i < kAmxQuadColumns && c + i < columns_in_k; ++i) quad[i] = values[c + i];
-      AmxBf16::quad_bytes(quad, out + 2 * c);
+      bf16_quad_bytes(quad, out + 2 * c);
     }
   }
 }
@@ -367,15 +332,13 @@ template <typename Kind, typename Element>
 AmxActivations<Kind> amx_activations(const Element* x, int64_t m, int64_t k, int group_size, int act_bits) {
   AmxActivations<Kind> a;
   a.groups = group_count(k, group_size);
-  a.step_bytes = amx_step_bytes<Kind>(group_size);
+  a.step_bytes = amx_step_bytes(group_size);
   a.steps = a.groups * group_size / a.step_columns();
   a.rows = (m + kAmxRowBlock - 1) / kAmxRowBlock * kAmxRowBlock;
   // Every byte of the rows below m is written below; only the padding rows of the last block are zeroed.
   a.bytes.reset(new uint8_t[a.rows * a.steps * a.step_bytes]);
-  if constexpr (Kind::kQuantized) {
-    a.zeros.resize(m * a.groups);
-    a.scales.resize(m * a.groups);
-  }
+  a.zeros.resize(m * a.groups);
+  a.scales.resize(m * a.groups);
   const int64_t padded = a.groups * group_size;  // columns, zero past k
   const int64_t step_columns = a.step_columns();
   const int64_t line_bytes = kAmxRowBlock * a.step_bytes;  // a slice's consecutive steps of one row
@@ -398,18 +361,16 @@ AmxActivations<Kind> amx_activations(const Element* x, int64_t m, int64_t k, int
       } else {
         load_row_fp32(x + r * k, k, row.data());
       }
-      if constexpr (Kind::kQuantized) {
-        for (int64_t g = 0; g < a.groups; ++g) {
-          const int64_t columns = group_columns(k, group_size, g);
-          uint8_t* group_codes = codes.data() + g * group_size;
-          const ActivationGroupParams params = quantize_group(values + g * group_size, columns, act_bits, group_codes);
-          if constexpr (Kind::kCentered) {
-            // q_x - z_x as s8 bytes (the columns past k stay 0).
-            for (int64_t c = 0; c < columns; ++c) group_codes[c] = static_cast<uint8_t>(group_codes[c] - params.zero);
-          }
-          a.zeros[r * a.groups + g] = static_cast<float>(params.zero);
-          a.scales[r * a.groups + g] = params.scale;
+      for (int64_t g = 0; g < a.groups; ++g) {
+        const int64_t columns = group_columns(k, group_size, g);
+        uint8_t* group_codes = codes.data() + g * group_size;
+        const ActivationGroupParams params = quantize_group(values + g * group_size, columns, act_bits, group_codes);
+        if constexpr (Kind::kCentered) {
+          // q_x - z_x as s8 bytes (the columns past k stay 0).
+          for (int64_t c = 0; c < columns; ++c) group_codes[c] = static_cast<uint8_t>(group_codes[c] - params.zero);
         }
+        a.zeros[r * a.groups + g] = static_cast<float>(params.zero);
+        a.scales[r * a.groups + g] = params.scale;
       }
       // Step by step into the row's line of each step's tile (one offset per slice: the steps of a
       // slice's block are a line of 32 rows apart).
@@ -417,11 +378,7 @@ AmxActivations<Kind> amx_activations(const Element* x, int64_t m, int64_t k, int
         uint8_t* line = a.bytes.get() + a.offset(r, slice);
         const int64_t slice_end = std::min(padded, slice + kAmxPanelDepth);
         for (int64_t step = slice; step < slice_end; step += step_columns, line += line_bytes) {
-          if constexpr (Kind::kQuantized) {
-            int8_step_bytes(codes.data() + step, step_columns, line);
-          } else {
-            bf16_step_bytes(values + step, k - step, step_columns, line);
-          }
+          int8_step_bytes(codes.data() + step, step_columns, line);
         }
       }
     }
@@ -430,8 +387,7 @@ AmxActivations<Kind> amx_activations(const Element* x, int64_t m, int64_t k, int
 }
 
 // The panel layout in plain C++ (the emulation's unpacking; the native path uses the AVX-512 packers of
-// the same layout): the steps (AmxBf16: of the dequantized weights), each group's s_w and, for AmxInt8,
-// sum q_w per output row.
+// the same layout): the steps, each group's s_w and, for AmxInt8, sum q_w per output row.
 template <typename Kind>
 struct ScalarAmxPanel {
   static constexpr int64_t kQuads = kAmxPanelDepth / kAmxQuadColumns;
@@ -457,9 +413,8 @@ struct ScalarAmxPanel {
       }
       const uint8_t* row = qweight + output * (k / 2);
       for (int64_t quad = 0; quad * kAmxQuadColumns < depth; ++quad) {
-        const float quad_scale = all_scales[output * groups + (col_begin + quad * kAmxQuadColumns) / group_size];
         for (int s = 0; s < Kind::kStepsPerQuad; ++s) {
-          const uint32_t dword = Kind::step_dword(row, k, col_begin / kAmxQuadColumns + quad, s, quad_scale);
+          const uint32_t dword = Kind::step_dword(row, k, col_begin / kAmxQuadColumns + quad, s);
           std::memcpy(&steps[(quad * Kind::kStepsPerQuad + s) * kAmxPanelColumns + j], &dword, 4);
         }
       }
@@ -487,7 +442,6 @@ template <typename Kind>
 void add_group_to_totals(const uint32_t (*group_sums)[kAmxPanelColumns], int64_t rows, const float* zeros,
                          const float* row_scales, int64_t params_stride, const float* weight_scales,
                          const float* weight_sums, float* totals) {
-  static_assert(Kind::kQuantized, "AmxBf16 has no epilogue: its tiles accumulate into the totals");
 #if defined(DYQ_CPU_ISA_AVX512)
   const __m512 scales_low = _mm512_loadu_ps(weight_scales), scales_high = _mm512_loadu_ps(weight_scales + 16);
   if constexpr (Kind::kCentered) {
@@ -528,16 +482,21 @@ void add_group_to_totals(const uint32_t (*group_sums)[kAmxPanelColumns], int64_t
 
 // Panels unpacked per pass over the activations: each block of 32 activation rows is run against every
 // panel of the pass while its A tiles are in the L1 cache, instead of coming from L2 once per panel, and
-// each pass reads all the activations once (for 256 rows of k = 4096, 1 MiB of int8 codes, 2 MiB of bf16:
-// as much as a core's L2, so that more panels per pass mean fewer reads of them from L3). Int8: two panels'
-// slices (2 x 8 KiB) and a block's A steps (8 KiB) leave room in a 48 KiB L1 for the C tile buffers and the
-// totals being scaled. AmxBf16 has no epilogue to keep in L1: its panels' slices (16 KiB each) come from
-// L2, and eight of them quarter the passes over its 2 MiB of activations (at 256 rows, 4096 x 4096, one
-// thread, about 9.0 -> 7.9 ms; two panels per pass stay faster for the int8 kinds).
-template <typename Kind>
-constexpr int64_t kAmxPanelsPerPass = Kind::kDequantizedWeights ? 8 : 2;
+// each pass reads all the activations once (for 256 rows of k = 4096, 1 MiB of codes: half a core's L2,
+// so that more panels per pass mean fewer reads of them from L3). Two panels' slices (2 x 8 KiB) and a
+// block's A steps (8 KiB) leave room in a 48 KiB L1 for the C tile buffers and the totals being scaled.
+constexpr int64_t kAmxPanelsPerPass = 2;
 
-// out = x W^T (+ bias) through the tile loop: AmxInt8Centered at act_bits 2/4, AmxInt8 at 8, AmxBf16 at 16.
+// Every output its bias (or 0): the product over no column. Returns whether every output is finite.
+template <typename Element>
+bool bias_outputs(const Element* bias, int64_t m, int64_t n, Element* out) {
+  const std::vector<float> zeros(n, 0.0f);
+  FiniteOutputs finite;
+  for (int64_t r = 0; r < m; ++r) finite.note(store_row_from_fp32(zeros.data(), bias, n, out + r * n));
+  return finite.all();
+}
+
+// out = x W^T (+ bias) through the tile loop: AmxInt8Centered at act_bits 2/4, AmxInt8 at 8.
 // Panel is ScalarAmxPanel<Kind> or a packer of the same layout. Threads split the panels of 32 output rows; each
 // configures its own tiles, takes its panels kAmxPanelsPerPass at a time, unpacks each slice of them once,
 // runs the slice against every activation row, and keeps the running totals of their outputs for all rows.
@@ -545,19 +504,12 @@ constexpr int64_t kAmxPanelsPerPass = Kind::kDequantizedWeights ? 8 : 2;
 template <typename Tiles, typename Kind, typename Panel, typename Element>
 bool amx_gemm(const Element* x, const uint8_t* qweight, const float* scales, const Element* bias, int64_t m, int64_t n,
               int64_t k, int group_size, int act_bits, Element* out) {
-  if (k == 0) {
-    // No column: no slice runs the loop below, whose last slice writes the outputs. Each is its bias (or 0).
-    const std::vector<float> zeros(n, 0.0f);
-    FiniteOutputs finite;
-    for (int64_t r = 0; r < m; ++r) finite.note(store_row_from_fp32(zeros.data(), bias, n, out + r * n));
-    return finite.all();
-  }
-  constexpr int64_t kPanelsPerPass = kAmxPanelsPerPass<Kind>;
+  // No column: no slice runs the loop below, whose last slice writes the outputs.
+  if (k == 0) return bias_outputs(bias, m, n, out);
   const AmxActivations<Kind> a = amx_activations<Kind>(x, m, k, group_size, act_bits);
   const int64_t step_bytes = a.step_bytes;
   const int64_t step_columns = a.step_columns();
   constexpr int64_t kBStride = kAmxPanelColumns * 4;  // bytes of one B row: a dword per output
-  constexpr int64_t kTotalsStride = kAmxPanelColumns * 4;  // bytes of one row of a panel's totals
   // Everything the loops step by, computed once: a division per group cost as much as a tile product.
   const int64_t steps_per_group = group_size / step_columns;
   const int64_t groups_per_slice = kAmxPanelDepth / group_size;
@@ -568,8 +520,8 @@ bool amx_gemm(const Element* x, const uint8_t* qweight, const float* scales, con
   parallel_for(0, panels, 1, [&](int64_t panel_begin, int64_t panel_end) {
     Tiles tiles;
     tiles.configure(step_bytes);
-    Panel pass_panels[kPanelsPerPass];
-    // The int8 kinds' C tiles of a group go to one of two buffers, and the previous group's are scaled into
+    Panel pass_panels[kAmxPanelsPerPass];
+    // A group's C tiles go to one of two buffers, and the previous group's are scaled into
     // the totals after the next group's tile products are issued: the AMX unit works through those while
     // the vector units scale, which would otherwise take turns (the scaling costs about as much as the products).
     alignas(64) uint32_t sums[2][kAmxRowBlock][kAmxPanelColumns];
@@ -577,7 +529,7 @@ bool amx_gemm(const Element* x, const uint8_t* qweight, const float* scales, con
       int64_t row_begin = -1, rows = 0, group = 0, global_group = 0;  // group: within the slice
       int panel = 0;                                                  // within the pass
     } pending;
-    std::vector<float> totals(kPanelsPerPass * a.rows * kAmxPanelColumns);  // [panel][row][32]
+    std::vector<float> totals(kAmxPanelsPerPass * a.rows * kAmxPanelColumns);  // [panel][row][32]
     int64_t pass_begin = panel_begin;
     // The outputs (plus the bias) of a block of rows from its finished totals.
     auto write_outputs = [&](int panel, int64_t row_begin, int64_t rows, const float* block_totals) {
@@ -589,27 +541,24 @@ bool amx_gemm(const Element* x, const uint8_t* qweight, const float* scales, con
                                         out + (row_begin + r) * n + weight_row));
       }
     };
-    // Adds a group's contribution to the totals of its block of rows (the int8 kinds).
+    // Adds a group's contribution to the totals of its block of rows.
     auto scale_into_totals = [&](const Pending& job, const uint32_t (*group_sums)[kAmxPanelColumns]) {
-      if constexpr (Kind::kQuantized) {
-        const Panel& panel = pass_panels[job.panel];
-        float* block_totals = &totals[(job.panel * a.rows + job.row_begin) * kAmxPanelColumns];
-        add_group_to_totals<Kind>(group_sums, job.rows, &a.zeros[job.row_begin * a.groups + job.global_group],
-                                  &a.scales[job.row_begin * a.groups + job.global_group], a.groups,
-                                  &panel.scales[job.group * kAmxPanelColumns],
-                                  &panel.weight_sums[job.group * kAmxPanelColumns], block_totals);
-        // The rows' last group: their outputs, written while the totals are in L1, and spread over the last
-        // slice's tile work instead of in one burst at the end.
-        if (job.global_group + 1 == a.groups) write_outputs(job.panel, job.row_begin, job.rows, block_totals);
-      }
+      const Panel& panel = pass_panels[job.panel];
+      float* block_totals = &totals[(job.panel * a.rows + job.row_begin) * kAmxPanelColumns];
+      add_group_to_totals<Kind>(group_sums, job.rows, &a.zeros[job.row_begin * a.groups + job.global_group],
+                                &a.scales[job.row_begin * a.groups + job.global_group], a.groups,
+                                &panel.scales[job.group * kAmxPanelColumns],
+                                &panel.weight_sums[job.group * kAmxPanelColumns], block_totals);
+      // The rows' last group: their outputs, written while the totals are in L1, and spread over the last
+      // slice's tile work instead of in one burst at the end.
+      if (job.global_group + 1 == a.groups) write_outputs(job.panel, job.row_begin, job.rows, block_totals);
     };
-    for (; pass_begin < panel_end; pass_begin += kPanelsPerPass) {
-      const int pass_count = static_cast<int>(std::min(kPanelsPerPass, panel_end - pass_begin));
+    for (; pass_begin < panel_end; pass_begin += kAmxPanelsPerPass) {
+      const int pass_count = static_cast<int>(std::min(kAmxPanelsPerPass, panel_end - pass_begin));
       std::fill(totals.begin(), totals.end(), 0.0f);
       for (int64_t slice = 0, slice_group = 0; slice < k; slice += kAmxPanelDepth, slice_group += groups_per_slice) {
         const int64_t depth = std::min(kAmxPanelDepth, k - slice);
         const int64_t slice_groups = group_count(depth, group_size);
-        const bool last_slice = slice + kAmxPanelDepth >= k;
         for (int i = 0; i < pass_count; ++i) {
           pass_panels[i].pack(qweight, scales, n, k, group_size, (pass_begin + i) * kAmxPanelColumns, slice, depth);
         }
@@ -642,51 +591,326 @@ bool amx_gemm(const Element* x, const uint8_t* qweight, const float* scales, con
               a_tile += a_step_bytes;
               b_tile += b_step_bytes;
             };
-            if constexpr (Kind::kDequantizedWeights) {
-              // The block's totals are the C tiles' starting values: the slice's products accumulate onto them.
-              float* block_totals = &totals[(i * a.rows + row_begin) * kAmxPanelColumns];
-              uint8_t* block_bytes = reinterpret_cast<uint8_t*>(block_totals);
-              constexpr int64_t kLowerHalf = kAmxTileRows * kTotalsStride, kRightHalf = 64;
-              tiles.template load<0>(block_bytes, kTotalsStride);
-              tiles.template load<1>(block_bytes + kRightHalf, kTotalsStride);
+            for (int64_t group = 0; group < slice_groups; ++group) {
+              tiles.template zero<0>();
+              tiles.template zero<1>();
               if (lower_half) {
-                tiles.template load<2>(block_bytes + kLowerHalf, kTotalsStride);
-                tiles.template load<3>(block_bytes + kLowerHalf + kRightHalf, kTotalsStride);
+                tiles.template zero<2>();
+                tiles.template zero<3>();
               }
-              for (int64_t s = 0, steps = slice_groups * steps_per_group; s < steps; ++s) step();
-              tiles.template store<0>(block_bytes, kTotalsStride);
-              tiles.template store<1>(block_bytes + kRightHalf, kTotalsStride);
+              for (int64_t s = 0; s < steps_per_group; ++s) step();
+              if (pending.row_begin >= 0) scale_into_totals(pending, sums[buffer ^ 1]);
+              tiles.template store<0>(&sums[buffer][0][0], kBStride);
+              tiles.template store<1>(&sums[buffer][0][16], kBStride);
               if (lower_half) {
-                tiles.template store<2>(block_bytes + kLowerHalf, kTotalsStride);
-                tiles.template store<3>(block_bytes + kLowerHalf + kRightHalf, kTotalsStride);
+                tiles.template store<2>(&sums[buffer][16][0], kBStride);
+                tiles.template store<3>(&sums[buffer][16][16], kBStride);
               }
-              if (last_slice) write_outputs(i, row_begin, std::min(kAmxRowBlock, m - row_begin), block_totals);
-            } else {
-              for (int64_t group = 0; group < slice_groups; ++group) {
-                tiles.template zero<0>();
-                tiles.template zero<1>();
-                if (lower_half) {
-                  tiles.template zero<2>();
-                  tiles.template zero<3>();
-                }
-                for (int64_t s = 0; s < steps_per_group; ++s) step();
-                if (pending.row_begin >= 0) scale_into_totals(pending, sums[buffer ^ 1]);
-                tiles.template store<0>(&sums[buffer][0][0], kBStride);
-                tiles.template store<1>(&sums[buffer][0][16], kBStride);
-                if (lower_half) {
-                  tiles.template store<2>(&sums[buffer][16][0], kBStride);
-                  tiles.template store<3>(&sums[buffer][16][16], kBStride);
-                }
-                pending = {row_begin, std::min(kAmxRowBlock, m - row_begin), group, slice_group + group, i};
-                buffer ^= 1;
-              }
+              pending = {row_begin, std::min(kAmxRowBlock, m - row_begin), group, slice_group + group, i};
+              buffer ^= 1;
             }
           }
         }
-        if constexpr (!Kind::kDequantizedWeights) {
-          // The slice's last group, before the next slice is packed over its scales.
-          scale_into_totals(pending, sums[buffer ^ 1]);
-          pending = {};
+        // The slice's last group, before the next slice is packed over its scales.
+        scale_into_totals(pending, sums[buffer ^ 1]);
+        pending = {};
+      }
+    }
+    tiles.release();
+  });
+  return finite.all();
+}
+
+// ---- AMX-BF16: the weights as the A operand ---------------------------------------------------------
+//
+// At act_bits 16 the tiles multiply bf16(x) with the dequantized weights bf16(q_w s_w), which no
+// per-group scale follows, so the C tiles accumulate a whole slice onto the running totals. Here the
+// weights are the A tiles and the activations the B tiles, so that a weight panel is the packed rows' own
+// order once each nibble becomes its bf16 value: per 32 columns of a row, one byte permute, one word shift
+// and one word lookup in a table of that row's group (bf16(q s_w) for the 16 codes), with no transpose.
+// With the weights as B, every call transposed all of them into their tile layout, three times the
+// instructions, and at 16 activation rows that unpacking was most of the call. The transposes move to the
+// activations (once per call) and the outputs (once per output). C[n][m] sums the same products in the
+// same order as C[m][n] did (tdpbf16ps takes the pairs in order and its products are exact), so the
+// results are those of the activations-as-A loop, bit for bit.
+//
+// Tiles: C0..C3 = output rows (0..15, 16..31 of the panel) x activation rows (0..15, 16..31 of the block);
+// A0/A1 = 16 weight rows x 32 columns (64 bytes); B0/B1 = 16 column pairs x 16 activation rows.
+
+constexpr int64_t kAmxBf16StepColumns = 32;                  // columns of one tile product
+constexpr int64_t kAmxBf16TileBytes = 16 * 64;               // one A or B tile
+constexpr int64_t kAmxBf16StepsPerSlice = kAmxPanelDepth / kAmxBf16StepColumns;
+
+// The activations as B tiles: for every block of 32 rows and step of 32 columns, the B tiles of its rows
+// 0..15 and 16..31, each 16 rows (the step's column pairs) of 16 dwords (the bf16 pair of each activation
+// row); slice by slice, within a slice block by block, within a block step by step, so that a block's
+// pass over a slice reads one run. Columns past k, and the rows past m of the last block, are 0.
+struct AmxBf16Activations {
+  int64_t blocks = 0, steps = 0;  // steps over the columns padded to whole groups
+  std::unique_ptr<uint8_t[]> bytes;
+
+  // The B tile of rows [16 half, 16 half + 16) of `block` at `step`.
+  uint8_t* tile(int64_t block, int64_t step, int half) const {
+    const int64_t slice = step / kAmxBf16StepsPerSlice;
+    const int64_t slice_steps = std::min(kAmxBf16StepsPerSlice, steps - slice * kAmxBf16StepsPerSlice);
+    const int64_t index = slice * kAmxBf16StepsPerSlice * blocks + block * slice_steps + step % kAmxBf16StepsPerSlice;
+    return bytes.get() + (2 * index + half) * kAmxBf16TileBytes;
+  }
+};
+
+template <typename Element>
+AmxBf16Activations amx_bf16_activations(const Element* x, int64_t m, int64_t k, int group_size) {
+  AmxBf16Activations a;
+  a.blocks = (m + kAmxRowBlock - 1) / kAmxRowBlock;
+  const int64_t padded = group_count(k, group_size) * group_size;
+  a.steps = padded / kAmxBf16StepColumns;
+  a.bytes.reset(new uint8_t[a.blocks * a.steps * 2 * kAmxBf16TileBytes]);
+  constexpr int64_t kStepBytes = kAmxBf16StepColumns * 2;  // one step of one row: 16 bf16 pairs
+  // B tile by B tile (16 rows): the rows' bf16 pairs in row order, then each step's 16 x 16 dwords
+  // transposed into the tile. A tile whose rows pass m gets zero rows; a block's second tile with no row
+  // below m is not written, and the tile loop does not read it.
+  parallel_for(0, (m + kAmxTileRows - 1) / kAmxTileRows, 1, [&](int64_t tile_begin, int64_t tile_end) {
+    std::vector<float> row(padded, 0.0f);  // x in fp32, where it is not fp32 already
+    std::unique_ptr<uint8_t[]> pairs(new uint8_t[kAmxTileRows * a.steps * kStepBytes]);  // [row][step][64]
+    for (int64_t t = tile_begin; t < tile_end; ++t) {
+      for (int64_t lane = 0; lane < kAmxTileRows; ++lane) {
+        const int64_t r = t * kAmxTileRows + lane;
+        uint8_t* row_pairs = pairs.get() + lane * a.steps * kStepBytes;
+        if (r >= m) {
+          std::memset(row_pairs, 0, a.steps * kStepBytes);
+          continue;
+        }
+        const float* values = row.data();
+        if constexpr (std::is_same_v<Element, float>) {
+          values = x + r * k;
+        } else {
+          load_row_fp32(x + r * k, k, row.data());
+        }
+        for (int64_t step = 0; step < a.steps; ++step) {
+          const int64_t column = step * kAmxBf16StepColumns;
+          bf16_step_bytes(values + column, k - column, kAmxBf16StepColumns, row_pairs + step * kStepBytes);
+        }
+      }
+      const int64_t block = t / 2;
+      const int half = static_cast<int>(t % 2);
+      for (int64_t step = 0; step < a.steps; ++step) {
+        uint8_t* tile = a.tile(block, step, half);
+        const uint8_t* step_pairs = pairs.get() + step * kStepBytes;
+#if defined(DYQ_CPU_ISA_AVX512)
+        __m512i dwords[kAmxTileRows];
+        for (int lane = 0; lane < kAmxTileRows; ++lane) {
+          dwords[lane] = _mm512_loadu_si512(step_pairs + lane * a.steps * kStepBytes);
+        }
+        transpose_16x16_dwords(dwords);
+        for (int p = 0; p < 16; ++p) _mm512_storeu_si512(tile + 64 * p, dwords[p]);
+#else
+        for (int lane = 0; lane < kAmxTileRows; ++lane) {
+          for (int p = 0; p < 16; ++p) std::memcpy(tile + 64 * p + 4 * lane, step_pairs + lane * a.steps * kStepBytes + 4 * p, 4);
+        }
+#endif
+      }
+    }
+  });
+  return a;
+}
+
+// A panel in plain C++ (the emulation's; the native path has AmxBf16Panel): 32 output rows x
+// kAmxPanelDepth columns of bf16(q_w s_w), step by step (32 columns), within a step row by row, a row's
+// 32 columns in order: an A tile is 1 KiB in one run. Rows past n and columns past k are 0.
+struct ScalarAmxBf16Panel {
+  alignas(64) uint16_t values[kAmxBf16StepsPerSlice][kAmxPanelColumns][kAmxBf16StepColumns];
+
+  void pack(const uint8_t* qweight, const float* all_scales, int64_t n, int64_t k, int group_size, int64_t row_begin,
+            int64_t col_begin, int64_t depth) {
+    const int64_t groups = group_count(k, group_size);
+    const int64_t padded_depth = group_count(depth, group_size) * group_size;
+    for (int64_t j = 0; j < kAmxPanelColumns; ++j) {
+      const int64_t output = row_begin + j;
+      for (int64_t c = 0; c < padded_depth; ++c) {
+        const int64_t column = col_begin + c;
+        values[c / kAmxBf16StepColumns][j][c % kAmxBf16StepColumns] = output < n && column < k
+                           ? dequantized_bf16_bits(weight_code(qweight + output * (k / 2), column),
+                                                   all_scales[output * groups + column / group_size])
+                           : uint16_t{0};
+      }
+    }
+  }
+};
+
+#if defined(DYQ_AVX512_HAS_AMX)
+// The same panel from AVX-512 VBMI and BF16: per row and group, the table of bf16(q s_w) for the 16 codes
+// (vcvtne2ps2bf16 of q s_w formed in fp32, which reads a product below fp32's normal range as 0, as
+// dequantized_bf16_bits does), twice over, so that vpermw's fifth index bit does not matter; then per 32
+// columns: vpermb puts packed byte c / 2 in the low byte of word c, vpsrlvw shifts the odd words' high
+// nibble down, and vpermw looks the nibble up.
+struct AmxBf16Panel {
+  alignas(64) uint16_t values[kAmxBf16StepsPerSlice][kAmxPanelColumns][kAmxBf16StepColumns];  // as ScalarAmxBf16Panel's
+
+  void pack(const uint8_t* qweight, const float* all_scales, int64_t n, int64_t k, int group_size, int64_t row_begin,
+            int64_t col_begin, int64_t depth) {
+    alignas(64) static constexpr float kCodes[16] = {0, 1, 2, 3, 4, 5, 6, 7, -8, -7, -6, -5, -4, -3, -2, -1};
+    const __m512 codes = _mm512_load_ps(kCodes);
+    __m512i byte_of_word[4];  // chunk v of a 64-byte load: word c from byte 16 v + c / 2
+    for (int v = 0; v < 4; ++v) {
+      alignas(64) uint8_t index[64];
+      for (int c = 0; c < 32; ++c) index[2 * c] = index[2 * c + 1] = static_cast<uint8_t>(16 * v + c / 2);
+      byte_of_word[v] = _mm512_load_si512(index);
+    }
+    const __m512i odd_words_by_4 = _mm512_set1_epi32(4 << 16);
+    const int64_t groups = group_count(k, group_size);
+    const int64_t padded_depth = group_count(depth, group_size) * group_size;
+    const int64_t row_bytes = k / 2;
+    const int64_t first_group = col_begin / group_size, chunks_per_group = group_size / kAmxBf16StepColumns;
+    for (int64_t j = 0; j < kAmxPanelColumns; ++j) {
+      const int64_t output = row_begin + j;
+      if (output >= n) {
+        for (int64_t step = 0; step * kAmxBf16StepColumns < padded_depth; ++step) {
+          std::memset(values[step][j], 0, sizeof(values[step][j]));
+        }
+        continue;
+      }
+      const uint8_t* row = qweight + output * row_bytes;
+      const float* row_scales = all_scales + output * groups;
+      // The row's bytes of the next slice: the rows of a pass, read 128 bytes a slice each, are more streams
+      // than the hardware prefetchers follow.
+      if (col_begin + kAmxPanelDepth < k) {
+        const uint8_t* next = row + (col_begin + kAmxPanelDepth) / 2;
+        _mm_prefetch(reinterpret_cast<const char*>(next), _MM_HINT_T0);
+        _mm_prefetch(reinterpret_cast<const char*>(next + 64), _MM_HINT_T0);
+      }
+      // The group of each 32 columns, counted (a division per chunk cost more than the chunk's unpacking).
+      int64_t group = first_group - 1, chunks_left = 0;
+      __m512i table = _mm512_setzero_si512();
+      for (int64_t c = 0; c < padded_depth; c += 128) {
+        const int64_t column = col_begin + c;
+        // Past k the load reads nothing (code 0, value 0): the row may end there, and the matrix with it.
+        const int64_t bytes = std::clamp<int64_t>((k - column) / 2, 0, 64);
+        const __mmask64 byte_mask = bytes >= 64 ? ~__mmask64{0} : (__mmask64{1} << bytes) - 1;
+        const __m512i packed = _mm512_maskz_loadu_epi8(byte_mask, row + column / 2);
+        for (int v = 0; v < 4 && c + 32 * v < padded_depth; ++v) {
+          if (chunks_left-- == 0) {
+            const __m512 products = _mm512_mul_ps(codes, _mm512_set1_ps(row_scales[++group]));
+            table = reinterpret_cast<__m512i>(_mm512_cvtne2ps_pbh(products, products));
+            chunks_left = chunks_per_group - 1;
+          }
+          const __m512i nibbles = _mm512_srlv_epi16(_mm512_maskz_permutexvar_epi8(~__mmask64{0}, byte_of_word[v], packed), odd_words_by_4);
+          _mm512_store_si512(values[c / kAmxBf16StepColumns + v][j], _mm512_permutexvar_epi16(nibbles, table));
+        }
+      }
+    }
+  }
+};
+#endif
+
+// outputs[m][j] = totals[j][m] for the 32 output rows j of a panel and the 32 activation rows m of a
+// block ([16, 32) only with `second_half`).
+inline void transpose_block_totals(const float* totals, bool second_half, float* outputs) {
+  for (int64_t m_half = 0; m_half < (second_half ? 2 : 1); ++m_half) {
+    for (int64_t j_half = 0; j_half < 2; ++j_half) {
+      const float* from = totals + j_half * kAmxTileRows * kAmxRowBlock + m_half * kAmxTileRows;
+      float* to = outputs + m_half * kAmxTileRows * kAmxPanelColumns + j_half * kAmxTileRows;
+#if defined(DYQ_CPU_ISA_AVX512)
+      __m512i rows[kAmxTileRows];
+      for (int j = 0; j < kAmxTileRows; ++j) rows[j] = _mm512_loadu_si512(from + j * kAmxRowBlock);
+      transpose_16x16_dwords(rows);
+      for (int r = 0; r < kAmxTileRows; ++r) _mm512_storeu_si512(to + r * kAmxPanelColumns, rows[r]);
+#else
+      for (int j = 0; j < kAmxTileRows; ++j) {
+        for (int r = 0; r < kAmxTileRows; ++r) to[r * kAmxPanelColumns + j] = from[j * kAmxRowBlock + r];
+      }
+#endif
+    }
+  }
+}
+
+// Panels unpacked per pass over the activations (AMX-BF16): a block's B tiles of a slice (16 KiB) stay in
+// L1 across the pass's panels, whose slices (16 KiB each) come from L2.
+constexpr int64_t kAmxBf16PanelsPerPass = 8;
+
+// out = x W^T (+ bias) at act_bits 16 through the AMX-BF16 tiles with the weights as A (above). Panel is
+// ScalarAmxBf16Panel or AmxBf16Panel. Threads split the panels of 32 output rows; each takes them
+// kAmxBf16PanelsPerPass at a time, unpacks each slice of them once, and runs it against every block of
+// activation rows, accumulating onto the totals of the pass, [panel][block][output row][activation row], which
+// the C tiles load and store once per slice. Returns whether every output is finite.
+template <typename Tiles, typename Panel, typename Element>
+bool amx_bf16_gemm(const Element* x, const uint8_t* qweight, const float* scales, const Element* bias, int64_t m,
+                   int64_t n, int64_t k, int group_size, Element* out) {
+  // No column: no slice runs the loop below, whose last slice writes the outputs.
+  if (k == 0) return bias_outputs(bias, m, n, out);
+  const AmxBf16Activations a = amx_bf16_activations(x, m, k, group_size);
+  constexpr int64_t kBlockTotals = kAmxPanelColumns * kAmxRowBlock;  // a panel's totals of one block
+  constexpr int64_t kTotalsStride = kAmxRowBlock * 4;                // bytes between two output rows' totals
+  const int64_t panels = (n + kAmxPanelColumns - 1) / kAmxPanelColumns;
+  constexpr int64_t kWeightStride = kAmxBf16StepColumns * 2;    // bytes between two rows of a panel's step
+  constexpr int64_t kLowerRows = kAmxTileRows * kWeightStride;  // a step's rows 16..31
+  FiniteOutputs finite;
+  parallel_for(0, panels, 1, [&](int64_t panel_begin, int64_t panel_end) {
+    Tiles tiles;
+    tiles.configure(64);
+    std::vector<Panel> pass_panels(kAmxBf16PanelsPerPass);
+    // [panel][block][output row 0..31][activation row 0..31]: a C tile's rows 128 bytes apart.
+    std::vector<float> totals(kAmxBf16PanelsPerPass * a.blocks * kBlockTotals);
+    alignas(64) std::array<float, kBlockTotals> outputs;  // a block's outputs: [activation row][output row]
+    for (int64_t pass_begin = panel_begin; pass_begin < panel_end; pass_begin += kAmxBf16PanelsPerPass) {
+      const int pass_count = static_cast<int>(std::min(kAmxBf16PanelsPerPass, panel_end - pass_begin));
+      std::fill(totals.begin(), totals.end(), 0.0f);
+      for (int64_t slice = 0; slice < k; slice += kAmxPanelDepth) {
+        const int64_t depth = std::min(kAmxPanelDepth, k - slice);
+        const int64_t first_step = slice / kAmxBf16StepColumns;
+        const int64_t slice_steps = std::min(kAmxBf16StepsPerSlice, a.steps - first_step);
+        const bool last_slice = slice + kAmxPanelDepth >= k;
+        for (int i = 0; i < pass_count; ++i) {
+          pass_panels[i].pack(qweight, scales, n, k, group_size, (pass_begin + i) * kAmxPanelColumns, slice, depth);
+        }
+        for (int64_t block = 0; block < a.blocks; ++block) {
+          // A block of 16 rows or fewer (M <= 16, or the rows' last block) has nothing in its second B tile:
+          // C1 and C3 are neither computed nor loaded or stored, half the block's tile work.
+          const bool second_half = m - block * kAmxRowBlock > kAmxTileRows;
+          const uint8_t* b_steps = a.tile(block, first_step, 0);
+          for (int i = 0; i < pass_count; ++i) {
+            const auto* weights = reinterpret_cast<const uint8_t*>(&pass_panels[i].values[0][0][0]);
+            float* block_totals = &totals[(i * a.blocks + block) * kBlockTotals];
+            uint8_t* totals_bytes = reinterpret_cast<uint8_t*>(block_totals);
+            constexpr int64_t kLowerTotals = kAmxTileRows * kTotalsStride, kRightTotals = kAmxTileRows * 4;
+            tiles.template load<0>(totals_bytes, kTotalsStride);
+            tiles.template load<2>(totals_bytes + kLowerTotals, kTotalsStride);
+            if (second_half) {
+              tiles.template load<1>(totals_bytes + kRightTotals, kTotalsStride);
+              tiles.template load<3>(totals_bytes + kLowerTotals + kRightTotals, kTotalsStride);
+            }
+            const uint8_t* b_tile = b_steps;
+            for (int64_t s = 0; s < slice_steps; ++s, b_tile += 2 * kAmxBf16TileBytes) {
+              const uint8_t* a_tile = weights + s * kAmxPanelColumns * kWeightStride;
+              tiles.template load<6>(b_tile, 64);
+              tiles.template load<4>(a_tile, kWeightStride);
+              tiles.template dpbf16ps<0, 4, 6>();
+              tiles.template load<5>(a_tile + kLowerRows, kWeightStride);
+              tiles.template dpbf16ps<2, 5, 6>();
+              if (second_half) {
+                tiles.template load<7>(b_tile + kAmxBf16TileBytes, 64);
+                tiles.template dpbf16ps<1, 4, 7>();
+                tiles.template dpbf16ps<3, 5, 7>();
+              }
+            }
+            tiles.template store<0>(totals_bytes, kTotalsStride);
+            tiles.template store<2>(totals_bytes + kLowerTotals, kTotalsStride);
+            if (second_half) {
+              tiles.template store<1>(totals_bytes + kRightTotals, kTotalsStride);
+              tiles.template store<3>(totals_bytes + kLowerTotals + kRightTotals, kTotalsStride);
+            }
+            if (last_slice) {
+              // The block's outputs (plus the bias): its totals transposed to activation rows.
+              const int64_t weight_row = (pass_begin + i) * kAmxPanelColumns;
+              const int64_t columns = std::min(kAmxPanelColumns, n - weight_row);
+              const int64_t row_begin = block * kAmxRowBlock, block_rows = std::min(kAmxRowBlock, m - row_begin);
+              transpose_block_totals(block_totals, second_half, outputs.data());
+              for (int64_t r = 0; r < block_rows; ++r) {
+                finite.note(store_row_from_fp32(&outputs[r * kAmxPanelColumns],
+                                                bias != nullptr ? bias + weight_row : nullptr, columns,
+                                                out + (row_begin + r) * n + weight_row));
+              }
+            }
+          }
         }
       }
     }

@@ -11,8 +11,7 @@ void amx_emulated_gemm(const float* x, const uint8_t* qweight, const float* scal
                        int64_t n, int64_t k, int group_size, int act_bits, float* out) {
   using namespace portable;
   if (act_bits == 16) {
-    amx_gemm<EmulatedTiles, AmxBf16, ScalarAmxPanel<AmxBf16>>(x, qweight, scales, bias, m, n, k, group_size, act_bits,
-                                                              out);
+    amx_bf16_gemm<EmulatedTiles, ScalarAmxBf16Panel>(x, qweight, scales, bias, m, n, k, group_size, out);
   } else if (act_bits == 2 || act_bits == 4) {
     amx_gemm<EmulatedTiles, AmxInt8Centered, ScalarAmxPanel<AmxInt8Centered>>(x, qweight, scales, bias, m, n, k,
                                                                               group_size, act_bits, out);

@@ -716,32 +716,6 @@ constexpr int64_t kQuadColumns = 8;     // columns in one dword of packed weight
 // Quads (8 columns) that `columns` columns span, the last one partial where 8 does not divide them.
 inline int64_t quad_count(int64_t columns) { return (columns + kQuadColumns - 1) / kQuadColumns; }
 
-// rows[i] (dwords 0..15 of row i) becomes rows[q] = dword q of rows 0..15 (vector lane i).
-inline void transpose_16x16_dwords(__m512i rows[16]) {
-  __m512i t[16], u[16];
-  for (int i = 0; i < 8; ++i) {
-    t[2 * i] = _mm512_maskz_unpacklo_epi32(kAll16, rows[2 * i], rows[2 * i + 1]);
-    t[2 * i + 1] = _mm512_maskz_unpackhi_epi32(kAll16, rows[2 * i], rows[2 * i + 1]);
-  }
-  // u[4i + j], 128-bit lane L: column 4L + j of rows 4i..4i+3.
-  for (int i = 0; i < 4; ++i) {
-    u[4 * i] = _mm512_maskz_unpacklo_epi64(0xFF, t[4 * i], t[4 * i + 2]);
-    u[4 * i + 1] = _mm512_maskz_unpackhi_epi64(0xFF, t[4 * i], t[4 * i + 2]);
-    u[4 * i + 2] = _mm512_maskz_unpacklo_epi64(0xFF, t[4 * i + 1], t[4 * i + 3]);
-    u[4 * i + 3] = _mm512_maskz_unpackhi_epi64(0xFF, t[4 * i + 1], t[4 * i + 3]);
-  }
-  for (int j = 0; j < 4; ++j) {
-    const __m512i s0 = _mm512_maskz_shuffle_i32x4(kAll16, u[j], u[4 + j], 0x44);
-    const __m512i s1 = _mm512_maskz_shuffle_i32x4(kAll16, u[j], u[4 + j], 0xEE);
-    const __m512i s2 = _mm512_maskz_shuffle_i32x4(kAll16, u[8 + j], u[12 + j], 0x44);
-    const __m512i s3 = _mm512_maskz_shuffle_i32x4(kAll16, u[8 + j], u[12 + j], 0xEE);
-    rows[j] = _mm512_maskz_shuffle_i32x4(kAll16, s0, s2, 0x88);
-    rows[4 + j] = _mm512_maskz_shuffle_i32x4(kAll16, s0, s2, 0xDD);
-    rows[8 + j] = _mm512_maskz_shuffle_i32x4(kAll16, s1, s3, 0x88);
-    rows[12 + j] = _mm512_maskz_shuffle_i32x4(kAll16, s1, s3, 0xDD);
-  }
-}
-
 // Activation rows as the panel kernels read them, kPanelTileRows rows at a time (a tile): for quad q
 // (columns 8q..8q+7) and row r of tile t, the Kind::kSteps dwords that the kernel broadcasts at the steps
 // of that quad, at words[((t * quads + q) * kPanelTileRows + r) * kSteps], so that one pointer and constant
@@ -861,8 +835,8 @@ struct Bf16Panel {
 // Bf16Panel's layout, of the dequantized weights w = bf16(q_w s_w) (the product in fp32, rounded to nearest
 // even by vcvtne2ps2bf16, which reads a product below fp32's normal range as 0): no scale is left to apply
 // per group, so the accumulators run across a slice of kDepthColumns columns (docs/numerics.md, section
-// 3). The AMX-BF16 tiles read it at the panels' usual depth, the vdpbf16ps panel of many rows in deeper
-// slices (use_dequantized_panel).
+// 3). The vdpbf16ps panel of many rows reads it in deep slices (use_dequantized_panel); the AMX-BF16 tiles
+// unpack the same values row by row (gemm/gemm_cpu_amx.h, AmxBf16Panel).
 template <int64_t kDepthColumns>
 struct DequantizedBf16Panel : Bf16Panel {
   static constexpr int64_t kDepth = kDepthColumns;
@@ -1160,8 +1134,8 @@ inline bool use_dequantized_panel(int64_t m, int64_t k) {
 #endif
 
 #if defined(DYQ_AVX512_HAS_AMX)
-// From this many activation rows on, the AMX tiles (two A tiles of 16 rows), unpacking the weights with the
-// panel packers above (gemm/gemm_cpu_amx.h). The tile loop's cost hardly depends on the rows up to 16 (its
+// From this many activation rows on, the AMX tiles (gemm/gemm_cpu_amx.h; the int8 kinds unpack the weights
+// with the panel packers above). The tile loop's cost hardly depends on the rows up to 16 (its
 // work on every weight dominates), and W4A16 goes to it from 6 rows: on the Intel Xeon with AMX (Emerald
 // Rapids, one thread, hot weights, C++ loop) its tiles took about 3 ms on 4096 x 4096 and 8 ms on 11008 x
 // 4096 and 4096 x 11008 from 1 to 15 rows, where the bf16 dot products of the AVX-512 kernels, which cost
@@ -1179,9 +1153,7 @@ struct VnniPanelUnsummed : VnniPanel {
   static constexpr bool kWeightSums = false;
 };
 
-static_assert(VnniPanel::kSteps == AmxInt8::kStepsPerQuad &&
-                  DequantizedBf16Panel<kAmxPanelDepth>::kSteps == AmxBf16::kStepsPerQuad,
-              "the AMX tile loop reads the panels' layout");
+static_assert(VnniPanel::kSteps == AmxInt8::kStepsPerQuad, "the AMX tile loop reads the panels' layout");
 #endif
 
 // out = x W^T (+ bias) at kBits; returns whether every output is finite.
@@ -1219,8 +1191,7 @@ bool gemm_typed(const Element* x, const uint8_t* qweight, const float* scales, c
   } else {
 #if defined(DYQ_AVX512_HAS_AMX)
     if (m >= amx_min_rows(kBits)) {
-      return amx_gemm<NativeTiles, AmxBf16, WeightPanel<DequantizedBf16Panel<kAmxPanelDepth>>>(
-          x, qweight, scales, bias, m, n, k, group_size, kBits, out);
+      return amx_bf16_gemm<NativeTiles, AmxBf16Panel>(x, qweight, scales, bias, m, n, k, group_size, out);
     }
 #endif
 #if defined(DYQ_AVX512_HAS_BF16)
