@@ -1135,16 +1135,15 @@ inline bool use_dequantized_panel(int64_t m, int64_t k) {
 
 #if defined(DYQ_AVX512_HAS_AMX)
 // From this many activation rows on, the AMX tiles (gemm/gemm_cpu_amx.h; the int8 kinds unpack the weights
-// with the panel packers above). The tile loop's cost hardly depends on the rows up to 16 (its
-// work on every weight dominates), and W4A16 goes to it from 6 rows: on the Intel Xeon with AMX (Emerald
-// Rapids, one thread, hot weights, C++ loop) its tiles took about 3 ms on 4096 x 4096 and 8 ms on 11008 x
-// 4096 and 4096 x 11008 from 1 to 15 rows, where the bf16 dot products of the AVX-512 kernels, which cost
-// twice as many cycles there as on the AMD EPYC, grew with the rows: 2.5 ms at 4 rows, 3.6 at 6, 4.3 at 8
-// and 7.7 at 15 on 4096 x 4096 (14 ms at 8 rows on the 11008-wide shapes). The integer row and panel
-// kernels stay below the tiles' 1.6 ms up to 15 rows (timed before the tiles skipped the empty half of a
-// block of 16 rows or fewer).
+// with the panel packers above). The tile loop's cost hardly depends on the rows up to 16 (its work on every
+// weight dominates). W4A16 goes to it from 5 rows: on the Intel Xeon with AMX (Emerald Rapids, one thread,
+// hot weights, C++ loop, alternating runs) its tiles took 3.3 to 3.5 ms on 4096 x 4096 from 1 to 6 rows
+// (10.5 to 10.9 on 11008 x 4096), where the bf16 dot products of the AVX-512 row kernels, which cost twice
+// as many cycles there as on the AMD EPYC, grow with the rows: 2.9 to 3.1 ms at 4 rows, 4.2 at 5, 4.8 at 6
+// (7.6 to 9.0, 11.2 and 11.5 to 16 ms). The integer row and panel kernels stay below the tiles' 1.6 ms up
+// to 15 rows (timed before the tiles skipped the empty half of a block of 16 rows or fewer).
 constexpr int64_t kAmxMinRows = 16;
-constexpr int64_t kAmxFallbackMinRows = 6;
+constexpr int64_t kAmxFallbackMinRows = 5;
 inline int64_t amx_min_rows(int act_bits) { return act_bits == kFallbackBits ? kAmxFallbackMinRows : kAmxMinRows; }
 static_assert(kPanelColumns == kAmxPanelColumns && kPanelDepth == kAmxPanelDepth && kQuadColumns == kAmxQuadColumns,
               "the AMX tile loop reads the panels' layout");
