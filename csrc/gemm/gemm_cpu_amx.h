@@ -653,8 +653,9 @@ struct AmxBf16Activations {
   uint8_t* tile(int64_t block, int64_t step, int half) const {
     const int64_t slice = step / kAmxBf16StepsPerSlice;
     const int64_t slice_steps = std::min(kAmxBf16StepsPerSlice, steps - slice * kAmxBf16StepsPerSlice);
-    const int64_t index = slice * kAmxBf16StepsPerSlice * blocks + block * slice_steps + step % kAmxBf16StepsPerSlice;
-    return bytes.get() + (2 * index + half) * kAmxBf16TileBytes;
+    const int64_t step_index =
+        slice * kAmxBf16StepsPerSlice * blocks + block * slice_steps + step % kAmxBf16StepsPerSlice;
+    return bytes.get() + (2 * step_index + half) * kAmxBf16TileBytes;
   }
 };
 
@@ -705,7 +706,8 @@ AmxBf16Activations amx_bf16_activations(const Element* x, int64_t m, int64_t k, 
         for (int p = 0; p < 16; ++p) _mm512_storeu_si512(tile + 64 * p, dwords[p]);
 #else
         for (int lane = 0; lane < kAmxTileRows; ++lane) {
-          for (int p = 0; p < 16; ++p) std::memcpy(tile + 64 * p + 4 * lane, step_pairs + lane * a.steps * kStepBytes + 4 * p, 4);
+          const uint8_t* lane_pairs = step_pairs + lane * a.steps * kStepBytes;
+          for (int p = 0; p < 16; ++p) std::memcpy(tile + 64 * p + 4 * lane, lane_pairs + 4 * p, 4);
         }
 #endif
       }
@@ -728,10 +730,10 @@ struct ScalarAmxBf16Panel {
       const int64_t output = row_begin + j;
       for (int64_t c = 0; c < padded_depth; ++c) {
         const int64_t column = col_begin + c;
-        values[c / kAmxBf16StepColumns][j][c % kAmxBf16StepColumns] = output < n && column < k
-                           ? dequantized_bf16_bits(weight_code(qweight + output * (k / 2), column),
-                                                   all_scales[output * groups + column / group_size])
-                           : uint16_t{0};
+        values[c / kAmxBf16StepColumns][j][c % kAmxBf16StepColumns] =
+            output < n && column < k ? dequantized_bf16_bits(weight_code(qweight + output * (k / 2), column),
+                                                             all_scales[output * groups + column / group_size])
+                                     : uint16_t{0};
       }
     }
   }
@@ -744,7 +746,8 @@ struct ScalarAmxBf16Panel {
 // columns: vpermb puts packed byte c / 2 in the low byte of word c, vpsrlvw shifts the odd words' high
 // nibble down, and vpermw looks the nibble up.
 struct AmxBf16Panel {
-  alignas(64) uint16_t values[kAmxBf16StepsPerSlice][kAmxPanelColumns][kAmxBf16StepColumns];  // as ScalarAmxBf16Panel's
+  // As ScalarAmxBf16Panel's.
+  alignas(64) uint16_t values[kAmxBf16StepsPerSlice][kAmxPanelColumns][kAmxBf16StepColumns];
 
   void pack(const uint8_t* qweight, const float* all_scales, int64_t n, int64_t k, int group_size, int64_t row_begin,
             int64_t col_begin, int64_t depth) {
@@ -795,7 +798,8 @@ struct AmxBf16Panel {
             table = reinterpret_cast<__m512i>(_mm512_cvtne2ps_pbh(products, products));
             chunks_left = chunks_per_group - 1;
           }
-          const __m512i nibbles = _mm512_srlv_epi16(_mm512_maskz_permutexvar_epi8(~__mmask64{0}, byte_of_word[v], packed), odd_words_by_4);
+          const __m512i bytes_in_words = _mm512_maskz_permutexvar_epi8(~__mmask64{0}, byte_of_word[v], packed);
+          const __m512i nibbles = _mm512_srlv_epi16(bytes_in_words, odd_words_by_4);
           _mm512_store_si512(values[c / kAmxBf16StepColumns + v][j], _mm512_permutexvar_epi16(nibbles, table));
         }
       }
@@ -832,8 +836,8 @@ constexpr int64_t kAmxBf16PanelsPerPass = 8;
 // out = x W^T (+ bias) at act_bits 16 through the AMX-BF16 tiles with the weights as A (above). Panel is
 // ScalarAmxBf16Panel or AmxBf16Panel. Threads split the panels of 32 output rows; each takes them
 // kAmxBf16PanelsPerPass at a time, unpacks each slice of them once, and runs it against every block of
-// activation rows, accumulating onto the totals of the pass, [panel][block][output row][activation row], which
-// the C tiles load and store once per slice. Returns whether every output is finite.
+// activation rows, accumulating onto the totals of the pass, [panel][block][output row][activation row],
+// which the C tiles load and store once per slice. Returns whether every output is finite.
 template <typename Tiles, typename Panel, typename Element>
 bool amx_bf16_gemm(const Element* x, const uint8_t* qweight, const float* scales, const Element* bias, int64_t m,
                    int64_t n, int64_t k, int group_size, Element* out) {
@@ -849,12 +853,14 @@ bool amx_bf16_gemm(const Element* x, const uint8_t* qweight, const float* scales
   parallel_for(0, panels, 1, [&](int64_t panel_begin, int64_t panel_end) {
     Tiles tiles;
     tiles.configure(64);
-    std::vector<Panel> pass_panels(kAmxBf16PanelsPerPass);
+    // As many panels as a pass of this thread takes: a small layer's call allocates no more.
+    const int64_t pass_size = std::min(kAmxBf16PanelsPerPass, panel_end - panel_begin);
+    std::vector<Panel> pass_panels(pass_size);
     // [panel][block][output row 0..31][activation row 0..31]: a C tile's rows 128 bytes apart.
-    std::vector<float> totals(kAmxBf16PanelsPerPass * a.blocks * kBlockTotals);
+    std::vector<float> totals(pass_size * a.blocks * kBlockTotals);
     alignas(64) std::array<float, kBlockTotals> outputs;  // a block's outputs: [activation row][output row]
-    for (int64_t pass_begin = panel_begin; pass_begin < panel_end; pass_begin += kAmxBf16PanelsPerPass) {
-      const int pass_count = static_cast<int>(std::min(kAmxBf16PanelsPerPass, panel_end - pass_begin));
+    for (int64_t pass_begin = panel_begin; pass_begin < panel_end; pass_begin += pass_size) {
+      const int pass_count = static_cast<int>(std::min(pass_size, panel_end - pass_begin));
       std::fill(totals.begin(), totals.end(), 0.0f);
       for (int64_t slice = 0; slice < k; slice += kAmxPanelDepth) {
         const int64_t depth = std::min(kAmxPanelDepth, k - slice);
