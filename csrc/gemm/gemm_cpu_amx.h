@@ -431,50 +431,63 @@ struct ScalarAmxPanel {
   }
 };
 
-// totals[r][0..32) += one group's contribution for rows [0, rows), from the group's C tiles `group_sums`
-// (the epilogue of the int8 kinds, docs/numerics.md section 3):
+// Groups whose sums are scaled into the totals together: each row's totals are loaded and stored once for
+// all of them.
+constexpr int kAmxBatchGroups = 2;
+
+// totals[r][0..32) += the contributions of `count` (at most kAmxBatchGroups) consecutive groups for rows
+// [first_row, last_row), from the groups' C tiles `batch_sums[b]` (the epilogue of the int8 kinds,
+// docs/numerics.md section 3), group by group:
 // - AmxInt8: P = sum q_x q_w - z_x sum q_w, exact in fp32 (integers below 2^24), times s_x s_w;
 // - AmxInt8Centered: P = the C tiles' sum (q_x - z_x) q_w, times s_x s_w.
-// z_x and s_x of row r are zeros[r * params_stride] and row_scales[r * params_stride]. On AVX-512 the 32
-// outputs' factors stay in four registers over the rows; the scaling runs on the vector units beside the
-// AMX unit's tile products, and it costs about as much as they do, so every instruction of it counts.
+// z_x and s_x of row r's group b are zeros[r * params_stride + b] and row_scales[r * params_stride + b], the
+// group's s_w and sum q_w at weight_scales and weight_sums + b * 32. On AVX-512 the 32 outputs' factors stay
+// in registers over the rows; the scaling runs on the vector units beside the AMX unit's tile products, and
+// it costs about as much as they do, so every instruction of it counts.
 template <typename Kind>
-void add_group_to_totals(const uint32_t (*group_sums)[kAmxPanelColumns], int64_t rows, const float* zeros,
-                         const float* row_scales, int64_t params_stride, const float* weight_scales,
-                         const float* weight_sums, float* totals) {
+void add_groups_to_totals(const uint32_t (*batch_sums)[kAmxRowBlock][kAmxPanelColumns], int count, int64_t first_row,
+                          int64_t last_row, const float* zeros, const float* row_scales, int64_t params_stride,
+                          const float* weight_scales, const float* weight_sums, float* totals) {
 #if defined(DYQ_CPU_ISA_AVX512)
-  const __m512 scales_low = _mm512_loadu_ps(weight_scales), scales_high = _mm512_loadu_ps(weight_scales + 16);
-  if constexpr (Kind::kCentered) {
-    for (int64_t r = 0; r < rows; ++r) {
-      const __m512 row_scale = _mm512_set1_ps(row_scales[r * params_stride]);
-      float* total = totals + r * kAmxPanelColumns;
-      const __m512 low = cvtepi32_ps(_mm512_load_si512(group_sums[r]));
-      const __m512 high = cvtepi32_ps(_mm512_load_si512(group_sums[r] + 16));
-      _mm512_storeu_ps(total, _mm512_fmadd_ps(low, _mm512_mul_ps(row_scale, scales_low), _mm512_loadu_ps(total)));
-      _mm512_storeu_ps(total + 16,
-                       _mm512_fmadd_ps(high, _mm512_mul_ps(row_scale, scales_high), _mm512_loadu_ps(total + 16)));
-    }
-  } else {
-    const __m512 sums_low = _mm512_loadu_ps(weight_sums), sums_high = _mm512_loadu_ps(weight_sums + 16);
-    for (int64_t r = 0; r < rows; ++r) {
-      const __m512 zero = _mm512_set1_ps(zeros[r * params_stride]);
-      const __m512 row_scale = _mm512_set1_ps(row_scales[r * params_stride]);
-      float* total = totals + r * kAmxPanelColumns;
-      const __m512 low = _mm512_fnmadd_ps(zero, sums_low, cvtepi32_ps(_mm512_load_si512(group_sums[r])));
-      const __m512 high = _mm512_fnmadd_ps(zero, sums_high, cvtepi32_ps(_mm512_load_si512(group_sums[r] + 16)));
-      _mm512_storeu_ps(total, _mm512_fmadd_ps(low, _mm512_mul_ps(row_scale, scales_low), _mm512_loadu_ps(total)));
-      _mm512_storeu_ps(total + 16,
-                       _mm512_fmadd_ps(high, _mm512_mul_ps(row_scale, scales_high), _mm512_loadu_ps(total + 16)));
+  __m512 scales_low[kAmxBatchGroups], scales_high[kAmxBatchGroups], sums_low[kAmxBatchGroups],
+      sums_high[kAmxBatchGroups];
+  for (int b = 0; b < count; ++b) {
+    scales_low[b] = _mm512_loadu_ps(weight_scales + b * kAmxPanelColumns);
+    scales_high[b] = _mm512_loadu_ps(weight_scales + b * kAmxPanelColumns + 16);
+    if constexpr (!Kind::kCentered) {
+      sums_low[b] = _mm512_loadu_ps(weight_sums + b * kAmxPanelColumns);
+      sums_high[b] = _mm512_loadu_ps(weight_sums + b * kAmxPanelColumns + 16);
     }
   }
-#else
-  for (int64_t r = 0; r < rows; ++r) {
+  for (int64_t r = first_row; r < last_row; ++r) {
     float* total = totals + r * kAmxPanelColumns;
-    for (int64_t j = 0; j < kAmxPanelColumns; ++j) {
-      // The centered codes' sums are P already: no z_x term.
-      const float partial = static_cast<float>(static_cast<int32_t>(group_sums[r][j])) -
-                            (Kind::kCentered ? 0.0f : zeros[r * params_stride] * weight_sums[j]);
-      total[j] += partial * (row_scales[r * params_stride] * weight_scales[j]);
+    __m512 total_low = _mm512_loadu_ps(total), total_high = _mm512_loadu_ps(total + 16);
+    for (int b = 0; b < count; ++b) {
+      const __m512 row_scale = _mm512_set1_ps(row_scales[r * params_stride + b]);
+      __m512 low = cvtepi32_ps(_mm512_load_si512(batch_sums[b][r]));
+      __m512 high = cvtepi32_ps(_mm512_load_si512(batch_sums[b][r] + 16));
+      if constexpr (!Kind::kCentered) {
+        const __m512 zero = _mm512_set1_ps(zeros[r * params_stride + b]);
+        low = _mm512_fnmadd_ps(zero, sums_low[b], low);
+        high = _mm512_fnmadd_ps(zero, sums_high[b], high);
+      }
+      total_low = _mm512_fmadd_ps(low, _mm512_mul_ps(row_scale, scales_low[b]), total_low);
+      total_high = _mm512_fmadd_ps(high, _mm512_mul_ps(row_scale, scales_high[b]), total_high);
+    }
+    _mm512_storeu_ps(total, total_low);
+    _mm512_storeu_ps(total + 16, total_high);
+  }
+#else
+  for (int64_t r = first_row; r < last_row; ++r) {
+    float* total = totals + r * kAmxPanelColumns;
+    for (int b = 0; b < count; ++b) {
+      for (int64_t j = 0; j < kAmxPanelColumns; ++j) {
+        // The centered codes' sums are P already: no z_x term.
+        const float partial =
+            static_cast<float>(static_cast<int32_t>(batch_sums[b][r][j])) -
+            (Kind::kCentered ? 0.0f : zeros[r * params_stride + b] * weight_sums[b * kAmxPanelColumns + j]);
+        total[j] += partial * (row_scales[r * params_stride + b] * weight_scales[b * kAmxPanelColumns + j]);
+      }
     }
   }
 #endif
@@ -521,13 +534,14 @@ bool amx_gemm(const Element* x, const uint8_t* qweight, const float* scales, con
     Tiles tiles;
     tiles.configure(step_bytes);
     Panel pass_panels[kAmxPanelsPerPass];
-    // A group's C tiles go to one of two buffers, and the previous group's are scaled into
-    // the totals after the next group's tile products are issued: the AMX unit works through those while
-    // the vector units scale, which would otherwise take turns (the scaling costs about as much as the products).
-    alignas(64) uint32_t sums[2][kAmxRowBlock][kAmxPanelColumns];
+    // A batch of groups' C tiles (kAmxBatchGroups consecutive groups of a block and panel) goes to one of
+    // two buffers, and the previous batch's are scaled into the totals while this batch's tile products run,
+    // a part of its rows after each group's products are issued: the AMX unit works through those while the
+    // vector units scale, which would otherwise take turns (the scaling costs about as much as the products).
+    alignas(64) uint32_t sums[2][kAmxBatchGroups][kAmxRowBlock][kAmxPanelColumns];
     struct Pending {
-      int64_t row_begin = -1, rows = 0, group = 0, global_group = 0;  // group: within the slice
-      int panel = 0;                                                  // within the pass
+      int64_t row_begin = -1, rows = 0, group = 0, global_group = 0;  // group: the first, within the slice
+      int count = 0, panel = 0;                                       // groups; panel within the pass
     } pending;
     std::vector<float> totals(kAmxPanelsPerPass * a.rows * kAmxPanelColumns);  // [panel][row][32]
     int64_t pass_begin = panel_begin;
@@ -541,17 +555,22 @@ bool amx_gemm(const Element* x, const uint8_t* qweight, const float* scales, con
                                         out + (row_begin + r) * n + weight_row));
       }
     };
-    // Adds a group's contribution to the totals of its block of rows.
-    auto scale_into_totals = [&](const Pending& job, const uint32_t (*group_sums)[kAmxPanelColumns]) {
+    // Adds a batch's contribution to the totals of rows [first_row, last_row) of its block.
+    auto scale_into_totals = [&](const Pending& job, const uint32_t (*batch_sums)[kAmxRowBlock][kAmxPanelColumns],
+                                 int64_t first_row, int64_t last_row) {
       const Panel& panel = pass_panels[job.panel];
       float* block_totals = &totals[(job.panel * a.rows + job.row_begin) * kAmxPanelColumns];
-      add_group_to_totals<Kind>(group_sums, job.rows, &a.zeros[job.row_begin * a.groups + job.global_group],
-                                &a.scales[job.row_begin * a.groups + job.global_group], a.groups,
-                                &panel.scales[job.group * kAmxPanelColumns],
-                                &panel.weight_sums[job.group * kAmxPanelColumns], block_totals);
+      add_groups_to_totals<Kind>(batch_sums, job.count, first_row, last_row,
+                                 &a.zeros[job.row_begin * a.groups + job.global_group],
+                                 &a.scales[job.row_begin * a.groups + job.global_group], a.groups,
+                                 &panel.scales[job.group * kAmxPanelColumns],
+                                 &panel.weight_sums[job.group * kAmxPanelColumns], block_totals);
       // The rows' last group: their outputs, written while the totals are in L1, and spread over the last
       // slice's tile work instead of in one burst at the end.
-      if (job.global_group + 1 == a.groups) write_outputs(job.panel, job.row_begin, job.rows, block_totals);
+      if (job.global_group + job.count == a.groups) {
+        write_outputs(job.panel, job.row_begin + first_row, last_row - first_row,
+                      block_totals + first_row * kAmxPanelColumns);
+      }
     };
     for (; pass_begin < panel_end; pass_begin += kAmxPanelsPerPass) {
       const int pass_count = static_cast<int>(std::min(kAmxPanelsPerPass, panel_end - pass_begin));
@@ -591,28 +610,35 @@ bool amx_gemm(const Element* x, const uint8_t* qweight, const float* scales, con
               a_tile += a_step_bytes;
               b_tile += b_step_bytes;
             };
-            for (int64_t group = 0; group < slice_groups; ++group) {
-              tiles.template zero<0>();
-              tiles.template zero<1>();
-              if (lower_half) {
-                tiles.template zero<2>();
-                tiles.template zero<3>();
+            for (int64_t group = 0; group < slice_groups; group += kAmxBatchGroups) {
+              const int count = static_cast<int>(std::min<int64_t>(kAmxBatchGroups, slice_groups - group));
+              for (int b = 0; b < count; ++b) {
+                tiles.template zero<0>();
+                tiles.template zero<1>();
+                if (lower_half) {
+                  tiles.template zero<2>();
+                  tiles.template zero<3>();
+                }
+                for (int64_t s = 0; s < steps_per_group; ++s) step();
+                if (pending.row_begin >= 0) {
+                  scale_into_totals(pending, sums[buffer ^ 1], pending.rows * b / count,
+                                    pending.rows * (b + 1) / count);
+                }
+                uint32_t(*group_sums)[kAmxPanelColumns] = sums[buffer][b];
+                tiles.template store<0>(&group_sums[0][0], kBStride);
+                tiles.template store<1>(&group_sums[0][16], kBStride);
+                if (lower_half) {
+                  tiles.template store<2>(&group_sums[16][0], kBStride);
+                  tiles.template store<3>(&group_sums[16][16], kBStride);
+                }
               }
-              for (int64_t s = 0; s < steps_per_group; ++s) step();
-              if (pending.row_begin >= 0) scale_into_totals(pending, sums[buffer ^ 1]);
-              tiles.template store<0>(&sums[buffer][0][0], kBStride);
-              tiles.template store<1>(&sums[buffer][0][16], kBStride);
-              if (lower_half) {
-                tiles.template store<2>(&sums[buffer][16][0], kBStride);
-                tiles.template store<3>(&sums[buffer][16][16], kBStride);
-              }
-              pending = {row_begin, std::min(kAmxRowBlock, m - row_begin), group, slice_group + group, i};
+              pending = {row_begin, std::min(kAmxRowBlock, m - row_begin), group, slice_group + group, count, i};
               buffer ^= 1;
             }
           }
         }
-        // The slice's last group, before the next slice is packed over its scales.
-        scale_into_totals(pending, sums[buffer ^ 1]);
+        // The slice's last batch, before the next slice is packed over its scales.
+        scale_into_totals(pending, sums[buffer ^ 1], 0, pending.rows);
         pending = {};
       }
     }
