@@ -63,6 +63,17 @@ void load_row_fp32(const Element* x, int64_t k, float* out) {
   }
 }
 
+// Row x (k values) in fp32: x itself where it is fp32 already, else converted into `scratch` (k floats).
+template <typename Element>
+const float* row_as_fp32(const Element* x, int64_t k, float* scratch) {
+  if constexpr (std::is_same_v<Element, float>) {
+    return x;
+  } else {
+    load_row_fp32(x, k, scratch);
+    return scratch;
+  }
+}
+
 // out[i] = values[i] + bias[i] (bias nullable) converted to Element exactly as from_float does (round half
 // to even; a NaN becomes Eigen's quiet NaN of its sign for bf16), a vector at a time: written one by one,
 // the outputs of a 256-row GEMM of a 256 x 256 layer took a fifth of its time in bf16. store_lanes returns

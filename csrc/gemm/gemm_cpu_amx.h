@@ -355,12 +355,7 @@ AmxActivations<Kind> amx_activations(const Element* x, int64_t m, int64_t k, int
     std::vector<float> row(padded, 0.0f);  // x in fp32, where it is not fp32 already
     std::vector<uint8_t> codes(padded, 0);  // stays 0 past k
     for (int64_t r = row_begin; r < row_end; ++r) {
-      const float* values = row.data();
-      if constexpr (std::is_same_v<Element, float>) {
-        values = x + r * k;
-      } else {
-        load_row_fp32(x + r * k, k, row.data());
-      }
+      const float* values = row_as_fp32(x + r * k, k, row.data());
       for (int64_t g = 0; g < a.groups; ++g) {
         const int64_t columns = group_columns(k, group_size, g);
         uint8_t* group_codes = codes.data() + g * group_size;
@@ -707,12 +702,7 @@ AmxBf16Activations amx_bf16_activations(const Element* x, int64_t m, int64_t k, 
           std::memset(row_pairs, 0, a.steps * kStepBytes);
           continue;
         }
-        const float* values = row.data();
-        if constexpr (std::is_same_v<Element, float>) {
-          values = x + r * k;
-        } else {
-          load_row_fp32(x + r * k, k, row.data());
-        }
+        const float* values = row_as_fp32(x + r * k, k, row.data());
         for (int64_t step = 0; step < a.steps; ++step) {
           const int64_t column = step * kAmxBf16StepColumns;
           bf16_step_bytes(values + column, k - column, kAmxBf16StepColumns, row_pairs + step * kStepBytes);
@@ -766,6 +756,18 @@ struct ScalarAmxBf16Panel {
 };
 
 #if defined(DYQ_AVX512_HAS_AMX)
+// vpermb's indices for chunk v (32 columns) of a 64-byte load of packed weights: both bytes of word c from
+// byte 16 v + c / 2. A table, not a loop in every pack call.
+struct AmxBf16ByteOfWordTable {
+  alignas(64) uint8_t index[4][64];
+  constexpr AmxBf16ByteOfWordTable() : index() {
+    for (int v = 0; v < 4; ++v) {
+      for (int c = 0; c < 32; ++c) index[v][2 * c] = index[v][2 * c + 1] = static_cast<uint8_t>(16 * v + c / 2);
+    }
+  }
+};
+inline constexpr AmxBf16ByteOfWordTable kAmxBf16ByteOfWord{};
+
 // The same panel from AVX-512 VBMI and BF16: per row and group, the table of bf16(q s_w) for the 16 codes
 // (vcvtne2ps2bf16 of q s_w formed in fp32, which reads a product below fp32's normal range as 0, as
 // dequantized_bf16_bits does), twice over, so that vpermw's fifth index bit does not matter; then per 32
@@ -779,12 +781,8 @@ struct AmxBf16Panel {
             int64_t col_begin, int64_t depth) {
     alignas(64) static constexpr float kCodes[16] = {0, 1, 2, 3, 4, 5, 6, 7, -8, -7, -6, -5, -4, -3, -2, -1};
     const __m512 codes = _mm512_load_ps(kCodes);
-    __m512i byte_of_word[4];  // chunk v of a 64-byte load: word c from byte 16 v + c / 2
-    for (int v = 0; v < 4; ++v) {
-      alignas(64) uint8_t index[64];
-      for (int c = 0; c < 32; ++c) index[2 * c] = index[2 * c + 1] = static_cast<uint8_t>(16 * v + c / 2);
-      byte_of_word[v] = _mm512_load_si512(index);
-    }
+    __m512i byte_of_word[4];
+    for (int v = 0; v < 4; ++v) byte_of_word[v] = _mm512_load_si512(kAmxBf16ByteOfWord.index[v]);
     const __m512i odd_words_by_4 = _mm512_set1_epi32(4 << 16);
     constexpr int64_t kPrefetchSlices = 2;
     const int64_t groups = group_count(k, group_size);
