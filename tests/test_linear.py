@@ -35,7 +35,7 @@ def test_fallback_precision_is_close_to_the_float_layer(rng):
     layer = dyq.DyQLinear.from_linear(linear, act_bits=16)
     x = random_activations((8, 512), rng)
     # Where the CPU's W4A16 runs on bf16 dot products, x is rounded to bf16 first, and where it multiplies
-    # by the dequantized weights (the AMX tiles from 5 rows), they are rounded too (docs/numerics.md).
+    # by the dequantized weights (the AMX tiles from 4 rows), they are rounded too (docs/numerics.md).
     x_used = x.bfloat16().float() if bf16_fallback(8, 512, layer.group_size) else x
     weight = layer.dequantized_weight()
     if "dequantized" in dyq.cpu_gemm_kernel(8, 512, layer.group_size, 16):

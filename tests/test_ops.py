@@ -296,8 +296,8 @@ def test_activations_near_the_fp32_range_give_the_reference_answer(act_bits, mag
 
 
 # Rows on either side of the CPU's switch from the row kernels (decode) to the panel path (4 or 5 rows on
-# the AVX2 path, by the width; 2, 5 or 6 on AVX-512, by K and the width; dyq.cpu_gemm_kernel names the
-# kernel of a call).
+# the AVX2 path, by the width; 2, 5 or 6 on AVX-512, by K and the width) and to the AMX tiles (4 rows at
+# W4A16, 16 at the integer widths); dyq.cpu_gemm_kernel names the kernel of a call.
 PANEL_THRESHOLD_ROWS = (1, 2, 3, 4, 5, 6, 7, 8, 9, 15, 16, 17, 31)
 
 

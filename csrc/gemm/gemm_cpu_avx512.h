@@ -32,9 +32,8 @@
 #include "cpu/isa_region.h"
 #include "cpu/x86_ops.h"
 #include "parallel/parallel.h"
-#if defined(DYQ_AVX512_HAS_AMX)
+// The AMX tile loop, and the order of the packed nibbles that the bf16 row kernels share with it.
 #include "gemm/gemm_cpu_amx.h"
-#endif
 
 DYQ_ISA_BEGIN
 namespace dyq::cpu::DYQ_ISA_NAMESPACE {
@@ -564,8 +563,6 @@ struct Bf16DecodeActivations {
   Bf16DecodeRow row(int64_t r) const { return {blocks.data() + r * blocks_per_row, offsets.data() + r * groups}; }
 };
 
-inline int64_t bf16_decode_column(int v, int word) { return 4 * word + v; }
-
 template <typename Element>
 Bf16DecodeActivations bf16_decode_activations(const Element* x, int64_t m, int64_t k, int group_size) {
   Bf16DecodeActivations out;
@@ -576,14 +573,6 @@ Bf16DecodeActivations bf16_decode_activations(const Element* x, int64_t m, int64
   const int64_t pitch = out.blocks_per_row * kBlockColumns;
   std::vector<float> row(pitch, 0.0f);
   std::vector<uint16_t> rounded(pitch);
-  // 128-bit lane j of vector v gathers its 8 words from the block's 32-column chunk j (bf16_decode_column):
-  // one two-source permute over chunks 0 and 1 gives lanes 0 and 1, one over chunks 2 and 3 lanes 2 and 3.
-  __m512i word_indices[4];
-  for (int v = 0; v < 4; ++v) {
-    alignas(64) uint16_t index[32];
-    for (int word = 0; word < 32; ++word) index[word] = static_cast<uint16_t>(bf16_decode_column(v, word) % 64);
-    word_indices[v] = _mm512_load_si512(index);
-  }
   for (int64_t r = 0; r < m; ++r) {
     load_row_fp32(x + r * k, k, row.data());
     for (int64_t c = 0; c < pitch; c += 16) {
@@ -602,16 +591,9 @@ Bf16DecodeActivations bf16_decode_activations(const Element* x, int64_t m, int64
       }
       out.offsets[r * out.groups + g] = -kBf16DecodeBias * reduce_lanes<AddLanes>(sum);
     }
+    // The order of the weights' nibbles (gemm/gemm_cpu_amx.h).
     for (int64_t t = 0; t < out.blocks_per_row; ++t) {
-      const uint16_t* chunks = rounded.data() + t * kBlockColumns;  // four 32-column chunks
-      const __m512i first_pair[2] = {_mm512_loadu_si512(chunks), _mm512_loadu_si512(chunks + 32)};
-      const __m512i second_pair[2] = {_mm512_loadu_si512(chunks + 64), _mm512_loadu_si512(chunks + 96)};
-      Bf16DecodeBlock& block = out.blocks[r * out.blocks_per_row + t];
-      for (int v = 0; v < 4; ++v) {
-        const __m512i low = _mm512_permutex2var_epi16(first_pair[0], word_indices[v], first_pair[1]);
-        const __m512i high = _mm512_permutex2var_epi16(second_pair[0], word_indices[v], second_pair[1]);
-        _mm512_store_si512(block.words[v], _mm512_mask_mov_epi16(low, 0xFFFF0000u, high));
-      }
+      nibble_order_words(rounded.data() + t * kBlockColumns, out.blocks[r * out.blocks_per_row + t].words[0]);
     }
   }
   return out;
@@ -1136,15 +1118,18 @@ inline bool use_dequantized_panel(int64_t m, int64_t k) {
 #if defined(DYQ_AVX512_HAS_AMX)
 // From this many activation rows on, the AMX tiles (gemm/gemm_cpu_amx.h; the int8 kinds unpack the weights
 // with the panel packers above). The tile loop's cost hardly depends on the rows up to 16 (its work on every
-// weight dominates). W4A16 goes to it from 5 rows: on the Intel Xeon with AMX (Emerald Rapids, one thread,
-// hot weights, C++ loop, alternating runs) its tiles took 3.3 to 3.5 ms on 4096 x 4096 from 1 to 6 rows
-// (10.5 to 10.9 on 11008 x 4096), where the bf16 dot products of the AVX-512 row kernels, which cost twice
-// as many cycles there as on the AMD EPYC, grow with the rows: 2.9 to 3.1 ms at 4 rows, 4.2 at 5, 4.8 at 6
-// (7.6 to 9.0, 11.2 and 11.5 to 16 ms). The integer row and panel kernels stay below the tiles' 1.6 ms up
-// to 15 rows (timed before the tiles skipped the empty half of a block of 16 rows or fewer).
+// weight dominates). W4A16 goes to it from 4 rows: on the Intel Xeon with AMX (Emerald Rapids, hot weights,
+// C++ loop, the two alternating in one process) its tiles took 1.8 to 2.2 ms on 4096 x 4096 from 1 to 6
+// rows on one thread (3.0 to 3.9 ms on 11008 x 4096 and 4096 x 11008), where the bf16 dot products of the
+// AVX-512 row kernels, which cost twice as many cycles there as on the AMD EPYC, grow with the rows: 0.79
+// ms at 1 row, 2.0 at 3, 2.6 at 4 (1.6 to 1.8, 4.2 and 5.6 to 5.7 ms); on two threads, and on the policy's
+// 256- and 768-column layers, the same way. At 3 rows the two were within 15 % either way. The integer row
+// and panel kernels stay below the tiles' 1.6 ms up to 15 rows (timed before the tiles skipped the empty
+// half of a block of 16 rows or fewer).
 constexpr int64_t kAmxMinRows = 16;
-constexpr int64_t kAmxFallbackMinRows = 5;
+constexpr int64_t kAmxFallbackMinRows = 4;
 inline int64_t amx_min_rows(int act_bits) { return act_bits == kFallbackBits ? kAmxFallbackMinRows : kAmxMinRows; }
+static_assert(kBlockColumns == kAmxBf16LoadColumns, "the bf16 row kernels' blocks are nibble_order_words' loads");
 static_assert(kPanelColumns == kAmxPanelColumns && kPanelDepth == kAmxPanelDepth && kQuadColumns == kAmxQuadColumns,
               "the AMX tile loop reads the panels' layout");
 // The VNNI panel without the sums of q_w, which the centered codes of act_bits 2 and 4 do not need.
