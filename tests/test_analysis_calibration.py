@@ -216,6 +216,19 @@ def test_delay_reports_when_no_k_meets_the_rate():
     assert not result["met"] and result["delay_window"] == min(result["table"], key=lambda row: (row[1], row[0]))[0]
 
 
+def test_delay_takes_an_episode_shorter_than_the_warm_up():
+    """Such an episode has no warm step, so no downgrade error: the rates are the long episodes' alone."""
+    actions, errors = delay_inputs(1e6)
+    short_actions, short_errors = delay_inputs(1e6, episodes=1, steps=8)
+    alone = choose_delay(actions, errors, dyq.DispatchConfig(), d_acc=1.0, eta=0.1, max_rate=0.2)
+    mixed = choose_delay(actions + short_actions, errors + short_errors, dyq.DispatchConfig(), d_acc=1.0, eta=0.1,
+                         max_rate=0.2)
+    assert mixed["delay_window"] == alone["delay_window"]
+    assert [row[:2] for row in mixed["table"]] == [row[:2] for row in alone["table"]]
+    with pytest.raises(ValueError, match="d_acc"):
+        choose_delay(short_actions, short_errors, dyq.DispatchConfig(), d_acc=0.0, eta=0.1)
+
+
 def test_delay_rejects_errors_of_the_wrong_length():
     actions, errors = delay_inputs(0.0)
     errors[1][4] = np.zeros(3)

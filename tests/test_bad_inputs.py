@@ -125,6 +125,22 @@ def test_meta_tensors_mixed_with_cpu_tensors_are_rejected(layer):
         dyq.ops.gemm(x, qweight, scales, 64, 4, torch.zeros(16, device="meta"))
     with raises("scales is on meta but x is on cpu"):
         dyq.ops.dequantize_weight(qweight, scales.to("meta"), 64)
+    # A meta flag would send real inputs to the fake kernel, whose output is never computed.
+    with raises(r"act_bits_flag must be a CPU \(host\) tensor or on x's device \(cpu\), got meta"):
+        dyq.ops.gemm(x, qweight, scales, 64, torch.tensor([8], dtype=torch.int32, device="meta"))
+    # On meta inputs a meta flag is the shape computation it looks like.
+    out = dyq.ops.gemm(x.to("meta"), qweight.to("meta"), scales.to("meta"), 64,
+                       torch.tensor([8], dtype=torch.int32, device="meta"))
+    assert out.device.type == "meta" and out.shape == (3, 16)
+
+
+def test_group_size_must_be_an_int(rng):
+    """A float such as 64.0 compares equal to 64, but no tensor shape takes it: refused by name."""
+    with pytest.raises(TypeError, match="group_size must be an int in"):
+        dyq.DyQLinear(128, 4, group_size=64.0)
+    with pytest.raises(TypeError, match="group_size must be an int in"):
+        dyq.DyQLinear.from_linear(torch.nn.Linear(128, 4), group_size=64.0)
+    assert dyq.DyQLinear(128, 4, group_size=64).group_size == 64
 
 
 @pytest.mark.parametrize("device", ("meta", "fake"))
@@ -199,3 +215,11 @@ def test_one_overflowing_output_is_an_error_on_every_kernel(dtype, threads, rng)
                     dyq.ops.gemm(x, qweight, scales, 128, act_bits)
     finally:
         torch.set_num_threads(previous)
+
+
+def test_cpu_gemm_kernel_refuses_shapes_no_call_has():
+    with raises(r"m must be an int >= 0, got -1"):
+        dyq.cpu_gemm_kernel(-1, 4096, 128, 8)
+    with raises(r"k must be even \(two INT4 codes per byte\), got 4095"):
+        dyq.cpu_gemm_kernel(1, 4095, 128, 8)
+    assert dyq.cpu_gemm_kernel(0, 4096, 128, 8).startswith(dyq.cpu_info()["isa"] + "/")  # an empty input is a call

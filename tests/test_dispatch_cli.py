@@ -78,6 +78,24 @@ def test_unreadable_trajectories_are_reported(tmp_path, capsys, name, content, m
     assert "error:" in capsys.readouterr().err
 
 
+@pytest.mark.parametrize("rows", ["1,2,3,4,5,6,7\nnan,0,0,0,0,0,0", "1,2,3\n4,5,6", "1,2,3,4,5,6,7\n1,2,3"])
+def test_trajectories_the_dispatcher_refuses_are_one_line_errors(tmp_path, capsys, rows):
+    """A NaN row, fewer than 6 columns, ragged rows: the user's file, not a bug."""
+    path = tmp_path / "bad.csv"
+    path.write_text(rows + "\n")
+    assert main(["replay", str(path)]) == 2
+    err = capsys.readouterr().err
+    assert len(err.strip().splitlines()) == 1 and "bad.csv" in err and "Traceback" not in err, err
+
+
+@pytest.mark.parametrize("argv, message", [(["--steps", "5"], "--steps 5"), (["--seed", "-1"], "--seed -1")])
+def test_demo_arguments_its_trajectory_refuses_are_one_line_errors(tmp_path, capsys, argv, message):
+    assert main(["demo", str(tmp_path / "d.npz"), *argv]) == 2
+    err = capsys.readouterr().err
+    assert len(err.strip().splitlines()) == 1 and message in err and "Traceback" not in err, err
+    assert not (tmp_path / "d.npz").exists()
+
+
 def test_missing_file_exits_with_an_error(tmp_path, capsys):
     assert main(["replay", str(tmp_path / "missing.npz")]) == 2
     assert "missing.npz" in capsys.readouterr().err

@@ -94,4 +94,11 @@ def test_mistakes_are_one_line_usage_errors(checkpoint, tmp_path, capsys):
                                                          tmp_path / "floats.npy")
     assert "OUT must differ from SRC" in error(checkpoint, checkpoint)
     assert "has no config.json" in error(tmp_path, out)
+    # A config no architecture matches, and a config without weights: SRC's faults, not bugs.
+    (tmp_path / "empty").mkdir()
+    (tmp_path / "empty" / "config.json").write_text("{}")
+    assert "not a Hugging Face checkpoint transformers can load" in error(tmp_path / "empty", out)
+    (tmp_path / "no_weights").mkdir()
+    (tmp_path / "no_weights" / "config.json").write_text((checkpoint / "config.json").read_text())
+    assert "not a Hugging Face checkpoint transformers can load" in error(tmp_path / "no_weights", out)
     assert not out.exists()

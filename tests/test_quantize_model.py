@@ -206,6 +206,43 @@ def test_load_quantized_reports_what_does_not_fit(tmp_path):
         dyq.load_quantized(tiny_llama(), tmp_path / "missing")
 
 
+def test_load_quantized_into_a_quantized_model_takes_the_saved_precision(tmp_path):
+    """A model quantized before the load (other act_bits, no flag) ends as a fresh load does: the saved
+    flag and floors, and the same outputs."""
+    model = tiny_llama()
+    dyq.quantize_model(model, group_size=64, flag=dyq.PrecisionFlag(8), min_act_bits={"gate_proj": 16})
+    dyq.save_quantized(model, tmp_path)
+    before = tiny_llama()
+    dyq.quantize_model(before, group_size=64, act_bits=2)
+    loaded = dyq.load_quantized(before, tmp_path)
+    fresh = dyq.load_quantized(tiny_llama(), tmp_path)
+    assert dyq.model_flag(loaded).bits == 8
+    for name, layer in fresh.named_modules():
+        if isinstance(layer, dyq.DyQLinear):
+            other = loaded.get_submodule(name)
+            assert (other.precision, other.min_act_bits, other.flag is dyq.model_flag(loaded)) == (
+                layer.precision, layer.min_act_bits, True), name
+    ids = torch.randint(0, 512, (2, 9), generator=torch.Generator().manual_seed(4))
+    with torch.no_grad():
+        assert torch.equal(loaded(ids).logits, fresh(ids).logits)
+    other_groups = tiny_llama()
+    dyq.quantize_model(other_groups, group_size=128)
+    with pytest.raises(ValueError, match="is a DyQLinear of .* here but was saved as"):
+        dyq.load_quantized(other_groups, tmp_path)
+
+
+def test_a_non_finite_weight_is_named_before_any_layer_is_converted():
+    model = torch.nn.Sequential(torch.nn.Linear(64, 64), torch.nn.ReLU(), torch.nn.Linear(64, 8))
+    model[2].weight.data[0, 0] = float("inf")
+    with pytest.raises(ValueError, match=r"layers \['2'\] have NaN or Inf weights"):
+        dyq.quantize_model(model, group_size=64, skip=())
+    assert type(model[0]) is torch.nn.Linear and type(model[2]) is torch.nn.Linear
+    report = dyq.quantize_model(model, group_size=64, skip=("2",))
+    assert report.converted == ["0"] and "2" in report.skipped
+    with pytest.raises(TypeError, match=r"pass skip=\(\) to convert every layer, got None"):
+        dyq.quantize_model(tiny_llama(), skip=None)
+
+
 def test_set_precision_needs_dyq_layers():
     with pytest.raises(ValueError, match="contains no DyQLinear"):
         dyq.set_precision(torch.nn.Linear(4, 4), 4)

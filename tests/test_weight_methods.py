@@ -232,6 +232,18 @@ def test_bad_arguments_are_refused_by_name(kwargs, match):
         dyq.quantize_model(model, group_size=32, **kwargs)
 
 
+@pytest.mark.parametrize("method", ["awq", "gptq"])
+def test_calibration_that_gives_a_layer_nan_inputs_is_refused_by_layer(method):
+    """One NaN in the calibration data would make every clipping error NaN (AWQ kept scale 1 everywhere)."""
+    model = torch.nn.Sequential(torch.nn.Linear(64, 64), torch.nn.ReLU(), torch.nn.Linear(64, 8))
+    calibration = torch.randn(32, 64, generator=torch.Generator().manual_seed(5))
+    calibration[3, 5] = float("nan")
+    before = copy.deepcopy(model.state_dict())
+    with pytest.raises(ValueError, match="the calibration data gives layer '0' NaN or Inf inputs"):
+        dyq.quantize_model(model, group_size=64, skip=(), method=method, calibration=calibration)
+    assert all(torch.equal(before[k], v) for k, v in model.state_dict().items())
+
+
 def test_bad_channel_weight_shape_is_refused():
     with pytest.raises(ValueError, match="channel_weight must have shape"):
         clipped_weight(torch.randn(4, 64), 32, torch.ones(63))

@@ -149,6 +149,11 @@ inline void check_gemm_with_flag(const at::Tensor& x, const at::Tensor& qweight,
                                  int64_t min_act_bits) {
   check_gemm_args(x, qweight, scales, group_size, bias);
   check_flag_tensor(flag);
+  // The host's flag (pinned on CUDA) or one on x's own device; any other device (meta with real inputs)
+  // would leave the output to a kernel that does not compute it.
+  TORCH_CHECK(flag.device().is_cpu() || flag.device() == x.device(),
+              "dyq: act_bits_flag must be a CPU (host) tensor or on x's device (", x.device(), "), got ",
+              flag.device());
   TORCH_CHECK(is_valid_act_bits(min_act_bits), "dyq: min_act_bits must be ", registered_act_bits_text(), ", got ",
               min_act_bits);
 }

@@ -229,6 +229,8 @@ def choose_delay(actions_by_episode, errors_by_episode, config, d_acc: float, et
     _checks.same_length({"actions_by_episode": actions_by_episode, "errors_by_episode": errors_by_episode})
     config = _config(config)
     max_rate = _checks.real(max_rate, "max_rate", minimum=0.0)
+    d_acc = _checks.real(d_acc, "d_acc", minimum=0.0, strict=True)
+    eta = _checks.real(eta, "eta", minimum=0.0)
     delays = [_checks.integer(k, "delays[]", 1) for k in delays]
     if not delays:
         raise ValueError("delays must hold at least one K >= 1, got none")
@@ -238,7 +240,8 @@ def choose_delay(actions_by_episode, errors_by_episode, config, d_acc: float, et
         errors = _errors(errors, S.size, f"errors_by_episode[{i}]")
         defined = np.isfinite(S)
         bound = np.full(S.size, np.inf)
-        bound[defined] = error_bound(S[defined], d_acc, eta)
+        if defined.any():  # an episode shorter than the warm-up has no warm step, which is no error
+            bound[defined] = error_bound(S[defined], d_acc, eta)
         need = np.full(S.size, FULL_PRECISION)
         for b in reversed(QUANTIZED_BITS):  # the smallest width that meets the bound wins
             need[errors[b] <= bound] = b

@@ -36,13 +36,21 @@ def main(args: argparse.Namespace) -> int:
     from ..sim.evaluate import default_checkpoint
     from ..sim.plots import plot_episode
     from ..sim.rollout import PolicyRunner, run_episode
+    from .usage import UsageError
 
     if args.episodes < 1:
         raise ValueError(f"--episodes must be >= 1, got {args.episodes}")
     if args.threads:
         torch.set_num_threads(args.threads)
     checkpoint = args.checkpoint or default_checkpoint(args.task)
-    runner = PolicyRunner.load(checkpoint)
+    try:
+        runner = PolicyRunner.load(checkpoint)
+    except FileNotFoundError as error:
+        if args.checkpoint is not None:
+            raise UsageError(f"--checkpoint {checkpoint}: {error}") from None
+        shipped = sorted(p.name for p in checkpoint.parent.iterdir() if (p / "policy.json").is_file())
+        raise UsageError(f"--task {args.task}: no policy ships for it (shipped: {', '.join(shipped)}; or pass "
+                         "--checkpoint)") from None
     print(f"policy {checkpoint}: {runner.float_policy.config.layers} layers, hidden "
           f"{runner.float_policy.config.hidden_size}, trained with: {runner.float_policy.config.training.get('command')}")
     print(runner.report)

@@ -140,7 +140,10 @@ def _replay(args: argparse.Namespace) -> int:
     if args.out:
         require("matplotlib", "--out (the plot)")
     config, actions = _read_inputs(args)
-    trace = replay_trajectory(actions, KinematicDispatcher(config))
+    try:
+        trace = replay_trajectory(actions, KinematicDispatcher(config))
+    except ValueError as error:  # rows the dispatcher refuses: too narrow, ragged, NaN or Inf
+        raise UsageError(f"{args.trajectory}: {error}") from None
     summary = summarize(trace)
     print(f"trajectory     {args.trajectory}  shape {actions.shape}")
     print(format_summary(summary, config))
@@ -160,7 +163,10 @@ def _replay(args: argparse.Namespace) -> int:
 
 
 def _demo(args: argparse.Namespace) -> int:
-    actions = synthetic_trajectory(args.steps, args.seed)
+    try:
+        actions = synthetic_trajectory(args.steps, args.seed)
+    except ValueError as error:  # too few --steps for its phases, or a negative --seed
+        raise UsageError(f"--steps {args.steps} --seed {args.seed}: {error}") from None
     np.savez(args.output, actions=actions)
     print(f"wrote {args.output}: actions {actions.shape} (coarse transit, fine rotation-heavy manipulation, carry)")
     return 0

@@ -82,14 +82,22 @@ def main(args: argparse.Namespace) -> int:
     calibration = _calibration_ids(args.calibration) if args.calibration is not None else None
     skip = tuple(args.skip) if args.skip else DEFAULT_SKIP
 
-    config = transformers.AutoConfig.from_pretrained(args.src, local_files_only=True)
     import torch
 
     dtype = "auto" if args.dtype == "auto" else getattr(torch, args.dtype)
-    model_class = transformers_model_class(config, "AutoModelForCausalLM")
-    model = model_class.from_pretrained(args.src, local_files_only=True, **from_pretrained_dtype(dtype)).eval()
-    report = dyq.quantize_model(model, group_size=args.group_size, skip=skip, act_bits=args.act_bits,
-                                flag=dyq.PrecisionFlag(args.act_bits), method=args.method, calibration=calibration)
+    # SRC's own faults (a config no architecture matches, no weight file) are the user's to fix, not a bug.
+    try:
+        config = transformers.AutoConfig.from_pretrained(args.src, local_files_only=True)
+        model_class = transformers_model_class(config, "AutoModelForCausalLM")
+        model = model_class.from_pretrained(args.src, local_files_only=True, **from_pretrained_dtype(dtype)).eval()
+    except (ValueError, OSError) as error:
+        raise UsageError(f"{args.src}: not a Hugging Face checkpoint transformers can load ({error})") from None
+    try:
+        report = dyq.quantize_model(model, group_size=args.group_size, skip=skip, act_bits=args.act_bits,
+                                    flag=dyq.PrecisionFlag(args.act_bits), method=args.method,
+                                    calibration=calibration)
+    except ValueError as error:  # calibration ids that do not fit the model, non-finite weights
+        raise UsageError(f"{args.src}: {error}") from None
     print(report)
     if not report.converted:
         raise UsageError(f"{args.src}: no linear layer was converted; nothing to write")

@@ -219,6 +219,7 @@ def user_error_message(error: BaseException, args: argparse.Namespace | None, co
         return f"needs the Python package {package}, which is not installed (pip install {package})"
     if isinstance(error, ValueError) and command is not None and error.__traceback__ is not None:
         raised_in = traceback.extract_tb(error.__traceback__)[-1].filename
-        if command.__file__ and os.path.samefile(raised_in, command.__file__):
+        # A frame of compiled or frozen code names no file on disk (numpy's "bit_generator.pyx").
+        if command.__file__ and os.path.isfile(raised_in) and os.path.samefile(raised_in, command.__file__):
             return str(error)
     return None

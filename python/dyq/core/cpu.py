@@ -7,6 +7,8 @@ from __future__ import annotations
 
 import os
 
+import numpy as np
+
 from .. import _C
 
 
@@ -32,4 +34,9 @@ def cpu_gemm_kernel(m: int, k: int, group_size: int, act_bits: int) -> str:
     from .precision import check_bits, check_group_size
 
     check_group_size(group_size)
+    for name, value in (("m", m), ("k", k)):
+        if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 0:
+            raise ValueError(f"{name} must be an int >= 0, got {value!r}")
+    if k % 2:
+        raise ValueError(f"k must be even (two INT4 codes per byte), got {k}")
     return _C.cpu_gemm_kernel(int(m), int(k), int(group_size), check_bits(act_bits, "act_bits"))

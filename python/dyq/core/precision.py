@@ -58,7 +58,10 @@ def check_bits(bits, name: str = "bits") -> int:
 
 
 def check_group_size(group_size) -> int:
-    """Return ``group_size`` if it is one of :data:`GROUP_SIZES`, else raise ``ValueError``."""
+    """Return ``group_size`` as an int if it is one of :data:`GROUP_SIZES`, else raise naming it (a float such
+    as 64.0 compares equal to 64, but no tensor shape takes it)."""
+    if isinstance(group_size, (bool, np.bool_)) or not isinstance(group_size, (int, np.integer)):
+        raise TypeError(f"group_size must be an int in {GROUP_SIZES}, got {type(group_size).__name__} {group_size!r}")
     if group_size not in GROUP_SIZES:
         raise ValueError(f"group_size must be one of {GROUP_SIZES}, got {group_size!r}")
-    return group_size
+    return int(group_size)

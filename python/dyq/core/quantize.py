@@ -161,6 +161,9 @@ def quantize_model(model: nn.Module, group_size: int = 128, skip: Iterable[SkipP
     for pattern, bits in floors.items():
         _check_pattern(pattern, "min_act_bits")
         check_bits(bits, f"min_act_bits[{pattern!r}]")
+    if skip is None:
+        raise TypeError("skip must be layer-name patterns (a glob, a compiled regular expression, or a tuple of "
+                        "them); pass skip=() to convert every layer, got None")
     skip = tuple(skip) if not isinstance(skip, (str, re.Pattern)) else (skip,)
     for pattern in skip:
         _check_pattern(pattern, "skip")
@@ -220,6 +223,14 @@ def quantize_model(model: nn.Module, group_size: int = 128, skip: Iterable[SkipP
     for key, module in modules.items():
         if skip_reason(key) is None:
             as_plain_linear(module)
+
+    # Every weight to convert is checked before any method changes the model or a layer is converted: an
+    # error from the middle of the loop below would name no layer and leave the model half converted.
+    non_finite = [names[key][0] for key, module in modules.items() if skip_reason(key) is None
+                  and not module.weight.is_meta and not torch.isfinite(module.weight).all()]
+    if non_finite:
+        raise ValueError(f"layers {non_finite} have NaN or Inf weights: static INT4 weights must be finite (fix the "
+                         "checkpoint, or keep those layers in float with skip=...); no layer was converted")
 
     channel_weight: dict[int, torch.Tensor | None] = {}
     hessians: dict[int, torch.Tensor] = {}

@@ -152,12 +152,23 @@ def _model_from_config(config, state: dict[str, Any]) -> nn.Module:
 
 def prepare_quantized_layers(model: nn.Module, state: dict[str, Any], flag: PrecisionFlag | None) -> None:
     """Turn the Linear layers that ``state`` lists into DyQLinear layers of the saved geometry (their
-    contents are overwritten by the load that follows)."""
+    contents are overwritten by the load that follows). A layer that is a DyQLinear already (a model
+    quantized before the load) must have the saved geometry, and takes the saved precision like the others:
+    its act_bits, the load's flag and its floor."""
     found = dict(model.named_modules())
     method = next(m for m, saved in WEIGHT_METHOD_NAMES.items() if saved == state["weight_method"])
     for name, layer in state["layers"].items():
         module = found.get(name)
         if isinstance(module, DyQLinear):
+            here = (module.in_features, module.out_features, module.bias is not None, module.group_size)
+            saved = (layer["in_features"], layer["out_features"], layer["bias"], layer["group_size"])
+            if here != saved:
+                raise ValueError(f"layer {name!r} is a DyQLinear of (in_features, out_features, bias, group_size) "
+                                 f"{here} here but was saved as {saved}")
+            module.act_bits = layer["act_bits"]
+            module.bind_flag(flag)
+            module.weight_method = method
+            module.set_min_act_bits(layer.get("min_act_bits", 2))
             continue
         if is_transposed_linear(module):  # its nn.Linear shape, for the check below
             as_plain_linear(module)

@@ -279,6 +279,10 @@ class InputStatistics:
         return rows
 
 
+class NonFiniteCalibration(ValueError):
+    """The calibration data gave a linear layer NaN or Inf inputs, which no scale or clip search survives."""
+
+
 def run_calibration(model: nn.Module, calibration) -> None:
     """Run ``model`` on the calibration data: a callable (called with no argument), a tensor (``model(t)``), a
     dict (``model(**d)``), or a list or tuple of tensors and dicts (each run in turn)."""
@@ -303,6 +307,8 @@ def run_calibration(model: nn.Module, calibration) -> None:
             raise TypeError(f"{where} must be a tensor or a dict of keyword arguments, got {type(batch).__name__}")
         try:
             call()
+        except NonFiniteCalibration:
+            raise
         except (RuntimeError, ValueError, IndexError, TypeError) as err:
             raise ValueError(f"{where} does not fit the model ({type(model).__name__} raised: {err})") from err
 
@@ -323,15 +329,18 @@ def _observe_linear_inputs(model: nn.Module, calibration, observe) -> None:
     seen = set()
     hooks = []
 
-    def hook_of(key: int):
+    def hook_of(key: int, name: str):
         def hook(_module, inputs):
             seen.add(key)
+            if not torch.isfinite(inputs[0]).all():
+                raise NonFiniteCalibration(f"the calibration data gives layer {name!r} NaN or Inf inputs; "
+                                           "calibrate on data whose activations are finite")
             observe(key, inputs[0])
         return hook
 
-    for module in model.modules():
+    for name, module in model.named_modules():
         if isinstance(module, nn.Linear):
-            hooks.append(module.register_forward_pre_hook(hook_of(id(module))))
+            hooks.append(module.register_forward_pre_hook(hook_of(id(module), name)))
     try:
         run_calibration(model, calibration)
     finally:
