@@ -1,4 +1,5 @@
 """Properties of the reference numerics itself (docs/numerics.md), for all inputs hypothesis can find."""
+import pytest
 import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
@@ -63,3 +64,19 @@ def test_kernel_packing_matches_reference_for_any_draw(group_size, seed):
         packed, s, z = dyq.ops.quantize_activations(w, group_size, b)
         c, rs, rz = reference.quantize_activations(w, group_size, b)
         assert torch.equal(packed, reference.pack_activations(c, b)) and torch.equal(s, rs) and torch.equal(z, rz)
+
+
+def test_inconsistent_arguments_are_refused(rng):
+    """The executable specification fails loudly too: no numbers from arguments no kernel takes."""
+    qweight, scales = dyq.ops.quantize_weight(torch.randn(4, 64, generator=rng), 64)
+    with pytest.raises(ValueError, match="x has K = 32 columns but qweight packs K = 64"):
+        reference.gemm(torch.randn(2, 32, generator=rng), qweight, scales, 64, 8)
+    with pytest.raises(ValueError, match=r"scales must have shape \(4, 2\) for K = 64 at group_size 32"):
+        reference.gemm(torch.randn(2, 64, generator=rng), qweight, scales, 32, 8)
+    for bits in (3, 0):
+        with pytest.raises(ValueError, match=rf"act_bits must be an int in \(2, 4, 8, 16\), got {bits}"):
+            reference.gemm(torch.randn(2, 64, generator=rng), qweight, scales, 64, bits)
+    with pytest.raises(ValueError, match=r"group_size must be an int in \(32, 64, 128\), got 48"):
+        reference.quantize_weight(torch.randn(4, 96, generator=rng), 48)
+    with pytest.raises(ValueError, match="act_bits 16 is not quantized"):
+        reference.quantize_activations(torch.randn(2, 64, generator=rng), 64, 16)

@@ -6,6 +6,7 @@ the C++ and CUDA kernels against it. It never calls a dyq kernel.
 from __future__ import annotations
 
 import math
+import numbers
 
 import torch
 
@@ -14,10 +15,32 @@ ACT_BITS = (2, 4, 8, 16)
 WEIGHT_QMIN, WEIGHT_QMAX = -8, 7
 
 
+def _check_group_size(group_size) -> None:
+    if isinstance(group_size, bool) or not isinstance(group_size, numbers.Integral) or group_size not in GROUP_SIZES:
+        raise ValueError(f"group_size must be an int in {GROUP_SIZES}, got {group_size!r}")
+
+
+def _check_act_bits(act_bits) -> None:
+    if isinstance(act_bits, bool) or not isinstance(act_bits, numbers.Integral) or act_bits not in ACT_BITS:
+        raise ValueError(f"act_bits must be an int in {ACT_BITS}, got {act_bits!r}")
+
+
+def _check_packed_weight(qweight: torch.Tensor, scales: torch.Tensor, group_size: int, k: int | None = None) -> None:
+    """qweight [N, K/2] and scales [N, ceil(K/G)]; K, where given, the activations' own."""
+    n, columns = qweight.shape[0], qweight.shape[-1] * 2
+    if k is not None and k != columns:
+        raise ValueError(f"x has K = {k} columns but qweight packs K = {columns}")
+    expected = (n, -(-columns // group_size))
+    if tuple(scales.shape) != expected:
+        raise ValueError(f"scales must have shape {expected} for K = {columns} at group_size {group_size}, got "
+                         f"{tuple(scales.shape)}")
+
+
 def _grouped(t: torch.Tensor, group_size: int) -> torch.Tensor:
     """[..., K] as [..., ceil(K/G), G]. When G does not divide K the last group holds the remainder,
     padded here with zeros: a zero changes neither a group's range (which always contains 0), nor its
     absolute maximum, nor its sums, so the padding is never visible in a result."""
+    _check_group_size(group_size)
     pad = -t.shape[-1] % group_size
     if pad:
         t = torch.nn.functional.pad(t, (0, pad))
@@ -55,6 +78,8 @@ def unpack_int4(packed: torch.Tensor) -> torch.Tensor:
 
 
 def dequantize_weight(qweight: torch.Tensor, scales: torch.Tensor, group_size: int = 128) -> torch.Tensor:
+    _check_group_size(group_size)
+    _check_packed_weight(qweight, scales, group_size)
     codes = _grouped(unpack_int4(qweight).float(), group_size)
     return _ungrouped(codes * scales.unsqueeze(-1), qweight.shape[-1] * 2)
 
@@ -64,6 +89,9 @@ def quantize_activations(x: torch.Tensor, group_size: int, act_bits: int):
 
     Returns (q_x uint8 [..., K] unpacked codes, s_x float32 [..., K/G], z_x uint8 [..., K/G]).
     """
+    _check_act_bits(act_bits)
+    if act_bits == 16:
+        raise ValueError("act_bits 16 is not quantized: quantize_activations takes 2, 4 or 8")
     levels = 2**act_bits - 1
     xg = _grouped(x.float(), group_size)
     finite = torch.isfinite(xg).all(dim=-1)
@@ -115,6 +143,9 @@ def gemm(x: torch.Tensor, qweight: torch.Tensor, scales: torch.Tensor, group_siz
     """
     k = x.shape[-1]
     n = qweight.shape[0]
+    _check_group_size(group_size)
+    _check_act_bits(act_bits)
+    _check_packed_weight(qweight, scales, group_size, k)
     x2 = x.reshape(math.prod(x.shape[:-1]), k)
     w_codes = _grouped(unpack_int4(qweight).to(accumulate_dtype), group_size)        # [N, Gs, G]
     s_w = scales.to(accumulate_dtype)                                                  # [N, Gs]
