@@ -106,6 +106,11 @@ def test_non_finite_weight_is_rejected(rng):
     w[2, 3] = float("inf")
     with raises("weight contains NaN or Inf"):
         dyq.ops.quantize_weight(w, 64)
+    # Finite in float64 but beyond float32: not called NaN or Inf.
+    w = random_weight(4, 128, rng).double()
+    w[1, 7] = 1e300
+    with raises(r"weight has values beyond float32's range \(\|w\| above 3.4e38\)"):
+        dyq.ops.quantize_weight(w, 64)
 
 
 @pytest.mark.cuda

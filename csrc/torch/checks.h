@@ -158,6 +158,15 @@ inline void check_gemm_with_flag(const at::Tensor& x, const at::Tensor& qweight,
               min_act_bits);
 }
 
+// Why quantize_weight found a weight its fp32 copy cannot hold finitely: NaN or Inf in the weight itself, or
+// (float64) finite values beyond fp32's range, which the fp32 scales could not hold either. Only on that error.
+inline std::string non_finite_weight_message(const at::Tensor& weight) {
+  const bool finite = weight.isfinite().all().item<bool>();
+  return finite ? std::string("dyq: weight has values beyond float32's range (|w| above 3.4e38), which the fp32 "
+                              "scales of static INT4 weights cannot hold")
+                : std::string("dyq: weight contains NaN or Inf; static INT4 weights must be finite");
+}
+
 // quantize_weight: a floating-point [N, K] with K even (two INT4 codes per byte).
 inline void check_quantize_weight(const at::Tensor& weight, int64_t group_size) {
   check_group_size(group_size);

@@ -64,7 +64,7 @@ std::tuple<at::Tensor, at::Tensor> quantize_weight_cpu(const at::Tensor& weight,
     return cpu::quantize_weight(w.const_data_ptr<float>(), n, k, static_cast<int>(group_size),
                                 qweight.mutable_data_ptr<uint8_t>(), scales.mutable_data_ptr<float>());
   });
-  TORCH_CHECK(finite, "dyq: weight contains NaN or Inf; static INT4 weights must be finite");
+  TORCH_CHECK(finite, non_finite_weight_message(weight));
   return {qweight, scales};
 }
 

@@ -53,7 +53,7 @@ std::tuple<at::Tensor, at::Tensor> quantize_weight_cuda(const at::Tensor& weight
                                      qweight.mutable_data_ptr<uint8_t>(), scales.mutable_data_ptr<float>(),
                                      nonfinite.mutable_data_ptr<int32_t>(), at::cuda::getCurrentCUDAStream()),
                "quantize_weight");
-  TORCH_CHECK(nonfinite.item<int32_t>() == 0, "dyq: weight contains NaN or Inf; static INT4 weights must be finite");
+  TORCH_CHECK(nonfinite.item<int32_t>() == 0, non_finite_weight_message(weight));
   return {qweight, scales};
 }
 
