@@ -389,3 +389,12 @@ def test_complex_actions_are_rejected(action):
     with pytest.raises(TypeError, match="complex"):
         dispatcher.step(action)
     assert dispatcher.steps == 0
+
+
+def test_pose_slices_outside_the_poses_are_refused():
+    poses = np.zeros((5, 4))
+    with pytest.raises(ValueError, match=r"rot_slice must be \(start, stop\) with 0 <= start < stop <= D = 4, got \(3, 6\)"):
+        actions_from_poses(poses)
+    with pytest.raises(ValueError, match=r"xyz_slice must be .* got \(5, 2\)"):
+        actions_from_poses(np.zeros((5, 7)), xyz_slice=(5, 2))
+    assert actions_from_poses(np.zeros((5, 7))).shape == (4, 6)

@@ -545,6 +545,10 @@ def actions_from_poses(poses, xyz_slice=(0, 3), rot_slice=(3, 6)) -> np.ndarray:
     poses = np.asarray(poses, dtype=np.float64)
     if poses.ndim != 2:
         raise ValueError(f"poses must have shape (T, D), got {poses.shape}")
+    for name, (start, stop) in (("xyz_slice", xyz_slice), ("rot_slice", rot_slice)):
+        if not 0 <= start < stop <= poses.shape[1]:
+            raise ValueError(f"{name} must be (start, stop) with 0 <= start < stop <= D = {poses.shape[1]}, "
+                             f"got {(start, stop)}")
     xyz = np.diff(poses[:, slice(*xyz_slice)], axis=0)
     rot = np.diff(poses[:, slice(*rot_slice)], axis=0)
     rot = (rot + np.pi) % (2.0 * np.pi) - np.pi
