@@ -246,6 +246,7 @@ BAD_ACTIONS = [
     (np.array([0, 0, np.nan, 0, 0, 0, 0]), ValueError, "action must be finite"),
     (np.array([0, 0, 0, np.inf, 0, 0, 0]), ValueError, "action must be finite"),
     (np.array([0, 0, 0, 0, 0, 0, -np.inf]), ValueError, "action must be finite"),
+    ([10**400] * 7, ValueError, "action must be finite real numbers, got values beyond float64's range"),
     ("abcdefg", TypeError, "action must be a 1-D array"),
     (None, ValueError, r"got shape \(\)"),
     ([[1, 2], [3]], TypeError, "action must be a 1-D array"),

@@ -78,6 +78,7 @@ BAD_VALUES = [
     ({"micro_window": -1}, ValueError, "micro_window must be an int in \\[1, "),
     ({"percentile": 0.0}, ValueError, r"percentile must be in \(0, 100\]"),
     ({"percentile": 100.5}, ValueError, r"percentile must be in \(0, 100\]"),
+    ({"percentile": 10**400}, ValueError, "percentile must be finite, got an int beyond float64's range"),
     ({"history": 0}, ValueError, "history must be an int in \\[1, "),
     ({"warmup": 0}, ValueError, "warmup must be an int in \\[1, "),
     ({"history": 8, "warmup": 9}, ValueError, r"warmup must be <= history \(8\)"),

@@ -57,7 +57,10 @@ def _check_int(value, name: str, minimum: int, maximum: int | None = None) -> in
 def _check_real(value, name: str) -> float:
     if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, float, np.integer, np.floating)):
         raise TypeError(f"{name} must be a real number, got {type(value).__name__} {value!r}")
-    value = float(value)
+    try:
+        value = float(value)
+    except OverflowError:  # a Python int beyond float64
+        raise ValueError(f"{name} must be finite, got an int beyond float64's range") from None
     if not math.isfinite(value):
         raise ValueError(f"{name} must be finite, got {value}")
     return value
@@ -696,6 +699,8 @@ class KinematicDispatcher:
             if array_.dtype.kind == "c":
                 raise TypeError(f"complex values (dtype {array_.dtype}) are not kinematics")
             array_ = array_.astype(np.float64, copy=False)
+        except OverflowError:  # a Python int beyond float64
+            raise ValueError("action must be finite real numbers, got values beyond float64's range") from None
         except (TypeError, ValueError, RuntimeError) as err:
             raise TypeError(
                 f"action must be a 1-D array of at least {self._min_length} real numbers "
