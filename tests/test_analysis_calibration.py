@@ -294,3 +294,15 @@ def test_write_config_validates_before_writing(tmp_path):
 def test_fusion_weight_needs_one_sensitivity_per_step():
     with pytest.raises(ValueError, match=r"sensitivity_by_episode\[0\] must have one s_t per step \(20\)"):
         choose_fusion_weight([random_actions(20, 0)], [np.ones(19)])
+
+
+def test_write_config_takes_numpy_scalars_and_never_leaves_a_truncated_file(tmp_path):
+    path = tmp_path / "dispatch.json"
+    first = write_config(path, fusion_weight=0.7, delay_window=4, theta_2_4=0.1, theta_4_8=0.35, theta_fp=0.5)
+    written = write_config(path, fusion_weight=np.float32(0.5), delay_window=np.int64(3), theta_2_4=np.float64(0.1),
+                           theta_4_8=None, theta_fp=np.float32(0.5))
+    loaded = dyq.DispatchConfig.load(path)
+    assert loaded == written and loaded != first and (loaded.fusion_weight, loaded.delay_window) == (0.5, 3)
+    with pytest.raises(ValueError, match="theta_fp"):
+        write_config(path, fusion_weight=0.5, delay_window=3, theta_2_4=None, theta_4_8=None, theta_fp=-1.0)
+    assert dyq.DispatchConfig.load(path) == written  # the refused write left the file as it was

@@ -182,3 +182,32 @@ def test_bootstrap_with_every_resample_degenerate_is_nan():
 def test_bootstrap_rejects_bad_settings(kwargs, match):
     with pytest.raises(ValueError, match=match):
         bootstrap_ci([0.0, 1.0, 2.0], [1.0, 0.0, 2.0], pearson, **kwargs)
+
+
+def test_mcnemar_beyond_the_exact_sum_matches_it_and_stays_fast():
+    """Past EXACT_MCNEMAR_MAX discordant seeds the p-value is summed in logarithms: it matches the exact big-
+    integer sum where both run, and a million seeds take well under a second (the exact sum took minutes)."""
+    import time
+
+    from dyq.analysis import stats
+
+    for a_only, b_only in [(1001, 1100), (1400, 1500), (2100, 2300)]:
+        exact = 2 * sum(math.comb(a_only + b_only, i) for i in range(min(a_only, b_only) + 1)) / 2 ** (a_only + b_only)
+        assert a_only + b_only > stats.EXACT_MCNEMAR_MAX
+        assert mcnemar_exact(a_only, b_only) == pytest.approx(min(1.0, exact), rel=1e-9)
+    start = time.perf_counter()
+    assert mcnemar_exact(10**6, 10**6) == pytest.approx(1.0)
+    assert mcnemar_exact(10**6 - 5000, 10**6) < 1e-3
+    assert time.perf_counter() - start < 5.0
+
+
+def test_alpha_outside_zero_one_is_refused():
+    with pytest.raises(ValueError, match=r"alpha must be in \(0, 1\), got 1.5"):
+        paired_comparison([1, 0, 1], [1, 0, 1], alpha=1.5)
+
+
+def test_pearson_near_the_ends_of_float64():
+    x = np.array([1.0, 2.0, 3.5])
+    assert pearson(x * 1e200, [1, 2, 3]) == pytest.approx(pearson(x, [1, 2, 3]), abs=1e-12)
+    assert pearson(x * 1e-170, [1, 2, 3]) == pytest.approx(pearson(x, [1, 2, 3]), abs=1e-12)
+    assert spearman(x * 1e300, [1, 2, 3]) == pytest.approx(1.0)

@@ -67,3 +67,64 @@ def test_a_gpt2_with_conv1d_layers_quantizes_on_load_and_round_trips(tmp_path):
     assert isinstance(loaded.transformer.h[0].mlp.c_fc, dyq.DyQLinear)
     with torch.no_grad():
         assert torch.equal(loaded(IDS).logits, model(IDS).logits)
+
+
+def tied_llama_checkpoint(tmp_path):
+    config = transformers.LlamaConfig(vocab_size=256, hidden_size=128, intermediate_size=256, num_hidden_layers=1,
+                                      num_attention_heads=4, num_key_value_heads=2, tie_word_embeddings=True)
+    torch.manual_seed(1)
+    transformers.LlamaForCausalLM(config).save_pretrained(tmp_path / "tied")
+    return tmp_path / "tied"
+
+
+def test_a_tied_lm_head_converted_on_load_saves_untied_and_loads_back(tmp_path):
+    model = transformers.LlamaForCausalLM.from_pretrained(
+        tied_llama_checkpoint(tmp_path), quantization_config=dyq.DyQConfig(group_size=32, modules_to_not_convert=[]))
+    assert isinstance(model.lm_head, dyq.DyQLinear) and not model.config.tie_word_embeddings
+    model.save_pretrained(tmp_path / "dyq")
+    loaded = transformers.LlamaForCausalLM.from_pretrained(tmp_path / "dyq")
+    assert isinstance(loaded.lm_head, dyq.DyQLinear)
+    with torch.no_grad():
+        assert torch.equal(loaded(IDS).logits, model(IDS).logits)
+
+
+def test_modules_to_not_convert_that_do_not_match_the_checkpoint_are_refused(float_checkpoint, tmp_path):
+    """Edited after saving, the list would leave INT4 shells unfilled (NaN or huge logits) or float layers on
+    random weights; a single name is one pattern, not its characters."""
+    import json
+
+    assert dyq.DyQConfig(modules_to_not_convert="lm_head").modules_to_not_convert == ["lm_head"]
+    with pytest.raises(TypeError, match="modules_to_not_convert must be layer names"):
+        dyq.DyQConfig(modules_to_not_convert=[b"lm_head"])
+    model = transformers.LlamaForCausalLM.from_pretrained(float_checkpoint, quantization_config=dyq.DyQConfig())
+    model.save_pretrained(tmp_path / "dyq")
+    config_path = tmp_path / "dyq" / "config.json"
+    saved = json.loads(config_path.read_text())
+    for edited in ([], ["nothing_here"], ["lm_head", "down_proj"]):
+        saved["quantization_config"]["modules_to_not_convert"] = edited
+        config_path.write_text(json.dumps(saved))
+        with pytest.raises(ValueError, match="does not match the checkpoint"):
+            transformers.LlamaForCausalLM.from_pretrained(tmp_path / "dyq")
+
+
+def test_import_dyq_alone_registers_the_quantizer_for_from_pretrained(float_checkpoint, tmp_path):
+    """A program that imports dyq, not dyq.DyQConfig, and then loads a dyq checkpoint gets its INT4 layers
+    (unregistered, transformers skips the method and loads float layers of random weights)."""
+    import subprocess
+    import sys
+
+    model = transformers.LlamaForCausalLM.from_pretrained(float_checkpoint, quantization_config=dyq.DyQConfig())
+    model.save_pretrained(tmp_path / "dyq")
+    with torch.no_grad():
+        torch.save(model(IDS).logits, tmp_path / "logits.pt")
+    torch.save(IDS, tmp_path / "ids.pt")
+    script = (
+        "import sys, torch, dyq, transformers\n"
+        f"m = transformers.LlamaForCausalLM.from_pretrained({str(tmp_path / 'dyq')!r})\n"
+        "assert type(m.model.layers[0].mlp.down_proj).__name__ == 'DyQLinear', type(m.model.layers[0].mlp.down_proj)\n"
+        f"ids = torch.load({str(tmp_path / 'ids.pt')!r})\n"
+        "with torch.no_grad():\n"
+        f"    assert torch.equal(m(ids).logits, torch.load({str(tmp_path / 'logits.pt')!r}))\n"
+    )
+    result = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=300)
+    assert result.returncode == 0, result.stderr[-2000:]

@@ -22,6 +22,10 @@ from .core.serialization import load_quantized, save_quantized
 
 __version__ = "0.1.0"
 
+from .core.hf_registration import register_with_transformers as _register_with_transformers  # noqa: E402
+
+_register_with_transformers()
+
 
 def __getattr__(name):
     # The Hugging Face quantizer registers itself with transformers on first use (transformers is optional).

@@ -220,11 +220,16 @@ def print_table(headers: list[str], rows: list[list], title: str = "") -> None:
         print("  ".join(c.rjust(w) for c, w in zip(r, widths)))
 
 
-def write_json(path: str | os.PathLike, payload: dict) -> Path:
-    """Writes payload as indented JSON; a bare file name lands in ``RESULTS`` (bench/results/)."""
+def results_path(path: str | os.PathLike) -> Path:
+    """Where a results file is read and written: a bare file name in ``RESULTS`` (bench/results/), any other
+    path as it is."""
     path = Path(path)
-    if path.parent == Path("."):
-        path = RESULTS / path
+    return RESULTS / path if path.parent == Path(".") else path
+
+
+def write_json(path: str | os.PathLike, payload: dict) -> Path:
+    """Writes payload as indented JSON at :func:`results_path`; returns that path."""
+    path = results_path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_suffix(path.suffix + ".tmp")
     tmp.write_text(json.dumps(payload, indent=2) + "\n")

@@ -19,6 +19,7 @@ import dataclasses
 import json
 import math
 import os
+from pathlib import Path
 from typing import Sequence
 
 import numpy as np
@@ -313,7 +314,11 @@ def write_config(path: str | os.PathLike, *, fusion_weight: float, delay_window:
         "theta_fp": theta_fp,
     })
     config = dyq.DispatchConfig.from_dict(data)
-    with open(path, "w", encoding="utf-8") as f:
-        json.dump(data, f, indent=2)
-        f.write("\n")
+    # The validated values (numpy scalars become Python numbers), written whole or not at all: a failed dump
+    # into the open file had left the previous config truncated.
+    data.update({"lambda": config.fusion_weight, "K": config.delay_window})
+    text = json.dumps(data, indent=2) + "\n"
+    tmp = Path(path).with_name(Path(path).name + ".tmp")
+    tmp.write_text(text, encoding="utf-8")
+    os.replace(tmp, path)
     return config

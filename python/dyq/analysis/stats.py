@@ -42,14 +42,24 @@ def _successes(value, name: str) -> np.ndarray:
     return array
 
 
+EXACT_MCNEMAR_MAX = 2000  # discordant seeds up to which the p-value is summed in exact integers
+
+
 def mcnemar_exact(a_only: int, b_only: int) -> float:
     """Two-sided exact McNemar p-value: under the null each discordant seed favours A with
     probability 1/2, p = min(1, 2 P[Binomial(m, 1/2) <= min(a_only, b_only)]); 1 with no discordant seeds."""
     a_only = _checks.integer(a_only, "a_only", 0)
     b_only = _checks.integer(b_only, "b_only", 0)
-    m = a_only + b_only
-    tail = sum(math.comb(m, i) for i in range(min(a_only, b_only) + 1))
-    return min(1.0, 2 * tail / 2**m)  # exact integers; one rounding in the division
+    m, k = a_only + b_only, min(a_only, b_only)
+    if m <= EXACT_MCNEMAR_MAX:
+        tail = sum(math.comb(m, i) for i in range(k + 1))
+        return min(1.0, 2 * tail / 2**m)  # exact integers; one rounding in the division
+    # Beyond, the exact sum of big integers takes seconds to minutes: the terms C(m, i) / 2^m in logarithms,
+    # each from the one before (C(m, i + 1) = C(m, i) (m - i) / (i + 1)), summed from the largest.
+    i = np.arange(k, dtype=np.float64)
+    logs = np.concatenate([[0.0], np.cumsum(np.log((m - i) / (i + 1)))]) - m * math.log(2.0)
+    top = float(logs.max())
+    return min(1.0, 2.0 * math.exp(top) * float(np.exp(logs - top).sum()))
 
 
 def paired_comparison(a, b, alpha: float = 0.05) -> dict:
@@ -61,6 +71,8 @@ def paired_comparison(a, b, alpha: float = 0.05) -> dict:
     a, b = _successes(a, "a"), _successes(b, "b")
     n = _checks.same_length({"a": a, "b": b})
     alpha = _checks.real(alpha, "alpha", minimum=0.0, strict=True)
+    if alpha >= 1.0:
+        raise ValueError(f"alpha must be in (0, 1), got {alpha}")
     a_only, b_only = int(np.sum(a & ~b)), int(np.sum(b & ~a))
     p_value = mcnemar_exact(a_only, b_only)
     if p_value < alpha:
@@ -85,12 +97,23 @@ def _pair(x, y) -> tuple[np.ndarray, np.ndarray]:
     return x, y
 
 
+def _unit_deviations(x: np.ndarray) -> np.ndarray | None:
+    """x's deviations from its mean over their largest magnitude, or None when x is constant. Scaled before
+    and after centring, so that values near float64's range neither overflow the sums nor underflow them."""
+    largest = float(np.abs(x).max())
+    if largest == 0.0:
+        return None
+    d = x / largest
+    d = d - d.mean()
+    spread = float(np.abs(d).max())
+    return None if spread == 0.0 else d / spread
+
+
 def _correlation(x: np.ndarray, y: np.ndarray) -> float:
-    dx, dy = x - x.mean(), y - y.mean()
-    denominator = math.sqrt(float(dx @ dx) * float(dy @ dy))
-    if denominator == 0.0:
+    dx, dy = _unit_deviations(x), _unit_deviations(y)
+    if dx is None or dy is None:
         return math.nan
-    return max(-1.0, min(1.0, float(dx @ dy) / denominator))
+    return max(-1.0, min(1.0, float(dx @ dy) / math.sqrt(float(dx @ dx) * float(dy @ dy))))
 
 
 def pearson(x, y) -> float:

@@ -48,7 +48,11 @@ class DyQConfig(QuantizationConfigMixin):
         self.quant_method = "dyq"
         self.group_size = check_group_size(group_size)
         self.act_bits = check_bits(act_bits, "act_bits")
+        if isinstance(modules_to_not_convert, str):  # one name, not its characters
+            modules_to_not_convert = [modules_to_not_convert]
         self.modules_to_not_convert = list(modules_to_not_convert or ())
+        if not all(isinstance(name, str) for name in self.modules_to_not_convert):
+            raise TypeError(f"modules_to_not_convert must be layer names (strings), got {modules_to_not_convert!r}")
         if weight_method not in WEIGHT_METHODS:
             raise ValueError(f"weight_method must be one of {WEIGHT_METHODS}, got {weight_method!r}")
         if rotation is not None:
@@ -69,12 +73,71 @@ class DyQHfQuantizer(HfQuantizer):
                 if (type(module) is nn.Linear or is_transposed_linear(module)) and not _matches(name, skip)
                 and id(module) not in readers]
 
+    def _check_stored_layers(self, model, targets, checkpoint_files) -> None:
+        """The layers the checkpoint stores in INT4 must be those modules_to_not_convert leaves to convert:
+        a shell the checkpoint does not fill would run on uninitialized codes, and a float layer whose weight
+        it does not hold on random ones. Checked where the loader names safetensors files (transformers 5)."""
+        files = [str(f) for f in checkpoint_files or () if str(f).endswith(".safetensors")]
+        if not files:
+            return
+        from safetensors import safe_open
+
+        stored = set()
+        for file in files:
+            with safe_open(file, framework="pt") as f:
+                stored.update(key[: -len(".qweight")] for key in f.keys() if key.endswith(".qweight"))
+        if not stored:
+            return
+
+        def is_stored(name: str) -> bool:  # a checkpoint of the base model lacks the head's prefix, or has more
+            return any(s == name or s.endswith("." + name) or name.endswith("." + s) for s in stored)
+
+        names = [name for name, _ in targets]
+        unfilled = [name for name in names if not is_stored(name)]
+        in_float = sorted(s for s in stored if not any(s == n or s.endswith("." + n) or n.endswith("." + s)
+                                                       for n in names))
+        if unfilled or in_float:
+            self._refuse_mismatch(unfilled, in_float)
+
+    def _refuse_mismatch(self, unfilled, in_float) -> None:
+        raise ValueError(
+            f"quantization_config.modules_to_not_convert={self.quantization_config.modules_to_not_convert} does "
+            f"not match the checkpoint: it would convert {unfilled[:5]}, whose INT4 tensors the checkpoint "
+            f"lacks, and keep in float {in_float[:5]}, which it stores in INT4; restore the list it was "
+            "saved with")
+
+    # transformers 4.x names the keys its load found and did not find (5.x passes the checkpoint's files to
+    # _process_model_before_weight_loading instead, where _check_stored_layers reads them).
+    def update_missing_keys(self, model, missing_keys, prefix):
+        if self.pre_quantized:
+            unfilled = sorted({key.rsplit(".", 1)[0] for key in missing_keys if key.endswith((".qweight", ".scales"))})
+            if unfilled:
+                self._refuse_mismatch(unfilled, [])
+        return missing_keys
+
+    def update_unexpected_keys(self, model, unexpected_keys):
+        if self.pre_quantized:
+            in_float = sorted({key.rsplit(".", 1)[0] for key in unexpected_keys
+                               if key.endswith((".qweight", ".scales"))})
+            if in_float:
+                self._refuse_mismatch([], in_float)
+        return unexpected_keys
+
     def _process_model_before_weight_loading(self, model, **kwargs):
         if not self.pre_quantized:
             return
         config = self.quantization_config
         method = next(m for m, saved in WEIGHT_METHOD_NAMES.items() if saved == config.weight_method)
-        for _, linear in self._targets(model):  # shells of the saved shape; the load fills them
+        targets = self._targets(model)
+        self._check_stored_layers(model, targets, kwargs.get("checkpoint_files"))
+        head = model.get_output_embeddings() if hasattr(model, "get_output_embeddings") else None
+        if (head is not None and any(linear is head for _, linear in targets)
+                and getattr(model.config, "tie_word_embeddings", False)):
+            raise ValueError(
+                "this checkpoint's LM head is INT4 but its config ties it to the input embeddings, which "
+                "transformers then reads as a float weight: load it with dyq.load_quantized(model, directory), "
+                "or quantize again keeping lm_head in float (the default modules_to_not_convert)")
+        for _, linear in targets:  # shells of the saved shape; the load fills them
             DyQLinear.convert_in_place(linear, group_size=config.group_size, act_bits=config.act_bits,
                                        quantize=False)
             linear.weight_method = method

@@ -272,6 +272,13 @@ def quantize_model(model: nn.Module, group_size: int = 128, skip: Iterable[SkipP
             report.shared[first] = others
 
     route_encoder_layers_through_modules(model)
+    # A converted LM head no longer shares the input embedding's float weight: a Hugging Face config that
+    # still ties them would make save_pretrained's checkpoint tie them again when it is loaded, onto an INT4
+    # head that has no weight to tie.
+    head = model.get_output_embeddings() if callable(getattr(model, "get_output_embeddings", None)) else None
+    config = getattr(model, "config", None)
+    if isinstance(head, DyQLinear) and getattr(config, "tie_word_embeddings", False):
+        config.tie_word_embeddings = False
     report.model_bytes_after = _module_bytes(model)
     return report
 

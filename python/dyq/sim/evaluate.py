@@ -283,7 +283,9 @@ def _jsonable(value):
 
 def update_results(out: Path, task: str, seeds: list[int], checkpoint: str, digest: str,
                    rows: dict[str, Any]) -> dict[str, Any]:
-    """Merges one task's rows into the results file; returns the whole file's content."""
+    """Merges one task's rows into the results file (where write_json puts it); returns the whole file's
+    content."""
+    out = results_io.results_path(out)
     data = json.loads(out.read_text()) if out.is_file() else {"tasks": {}}
     entry = data["tasks"].setdefault(task, {"configs": {}})
     if entry.get("checkpoint_digest") not in (None, digest):
@@ -513,7 +515,7 @@ def main(args: argparse.Namespace) -> int:
     except RuntimeError as err:  # no matplotlib: the table is still complete
         print(f"no figure: {err}")
     print(markdown_table(data))
-    print(f"wrote {args.out} and {args.table}")
+    print(f"wrote {results_io.results_path(args.out)} and {args.table}")
     if args.video is not None:
         from .rollout import PolicyRunner
         from .video import record_episode
