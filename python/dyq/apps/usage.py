@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import math
 import os
 import traceback
 from pathlib import Path
@@ -66,6 +67,19 @@ def positive_float(text: str) -> float:
 
 
 positive_float.invalid_examples = lambda folder: ["not-a-number", "0", "nan"]
+
+
+def nonnegative_float(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+    if not 0 <= value < math.inf:
+        raise argparse.ArgumentTypeError(f"must be a finite number >= 0, got {text}")
+    return value
+
+
+nonnegative_float.invalid_examples = lambda folder: ["not-a-number", "-0.5", "nan", "inf"]
 
 
 def comma_list(choices: Sequence[str]) -> Callable[[str], list[str]]:

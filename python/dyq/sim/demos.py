@@ -211,12 +211,15 @@ def load(path) -> list[dict]:
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Arguments of ``dyq collect``."""
+    from ..apps.usage import nonnegative_float, nonnegative_int, output_file, positive_int
+
     parser.add_argument("task", choices=envs.ALL_TASKS)
-    parser.add_argument("--demos", type=int, default=200, help="successful demos to keep")
-    parser.add_argument("--out", type=Path, default=None, help="HDF5 path (default: demos/<task>.hdf5)")
-    parser.add_argument("--noise", type=float, default=None,
+    parser.add_argument("--demos", type=positive_int, default=200, help="successful demos to keep")
+    parser.add_argument("--out", type=output_file(".hdf5"), default=None,
+                        help="HDF5 path (default: demos/<task>.hdf5)")
+    parser.add_argument("--noise", type=nonnegative_float, default=None,
                         help=f"execution noise std (default per task: {DEFAULT_NOISE})")
-    parser.add_argument("--seed0", type=int, default=envs.DEMO_SEED0,
+    parser.add_argument("--seed0", type=nonnegative_int, default=envs.DEMO_SEED0,
                         help="first seed; keep demo seeds out of the evaluation range 0..999")
     parser.add_argument("--keep-failures", action="store_true", help="store failed episodes too")
     parser.add_argument("--task-indices", type=int, nargs="+", default=None,
