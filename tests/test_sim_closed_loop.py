@@ -356,6 +356,7 @@ def test_summarize_only_names_the_figure_after_its_table_and_skips_a_task_withou
 @pytest.mark.parametrize("argv, message", [
     (["--tasks", "lift,stack"], "argument --tasks: unknown 'stack'; choose comma-separated names from lift,"),
     (["--tasks", "lift", "--configs", "fp32,w4a3"], "--configs: unknown configuration 'w4a3'"),
+    (["--tasks", "lift", "--configs", ","], "--configs ',' names no configuration"),
     (["--tasks", "lift", "--checkpoint", "lift"], "argument --checkpoint: expected NAME=DIR, got 'lift'"),
     (["--tasks", "lift", "--checkpoint", "stack=."], "unknown 'stack' in 'stack=.'"),
     (["--tasks", "lift", "--checkpoint", "square=."], "'square' is not evaluated (tasks: ['lift'])"),

@@ -23,7 +23,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--task", default=DEFAULT_TASK, help="task whose shipped policy to run (default: lift)")
     parser.add_argument("--checkpoint", type=input_dir, default=None, help="a policy folder from `dyq train`")
     parser.add_argument("--episodes", type=positive_int, default=3, help="seeded episodes per configuration")
-    parser.add_argument("--seed0", type=int, default=0, help="first evaluation seed")
+    parser.add_argument("--seed0", type=nonnegative_int, default=0, help="first evaluation seed")
     parser.add_argument("--plot", type=output_file(".png"), default=Path("dyq_demo_episode.png"),
                         help="PNG of the first DyQ episode")
     parser.add_argument("--threads", type=nonnegative_int, default=0, help="torch threads (0: torch's default)")

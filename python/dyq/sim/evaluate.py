@@ -432,6 +432,8 @@ def main(args: argparse.Namespace) -> int:
         raise ValueError("give --suite or --tasks, not both")
     tasks = [args.suite] if args.suite else args.tasks or ["lift", "pick_place_can", "square"]
     configs = [c for c in (args.configs or (SUITE_CONFIGS if args.suite else "fp32,w4a16,w4a8,w4a4,w4a2,dyq")).split(",") if c]
+    if not configs:
+        raise UsageError(f"--configs {args.configs!r} names no configuration")
     if args.episodes is None:
         args.episodes = SUITE_EPISODES if args.suite else 50
     for config in configs:
