@@ -89,13 +89,12 @@ class DyQHfQuantizer(HfQuantizer):
         if not stored:
             return
 
-        def is_stored(name: str) -> bool:  # a checkpoint of the base model lacks the head's prefix, or has more
-            return any(s == name or s.endswith("." + name) or name.endswith("." + s) for s in stored)
+        def same_layer(a: str, b: str) -> bool:  # a checkpoint of the base model lacks the head's prefix, or has more
+            return a == b or a.endswith("." + b) or b.endswith("." + a)
 
         names = [name for name, _ in targets]
-        unfilled = [name for name in names if not is_stored(name)]
-        in_float = sorted(s for s in stored if not any(s == n or s.endswith("." + n) or n.endswith("." + s)
-                                                       for n in names))
+        unfilled = [name for name in names if not any(same_layer(name, s) for s in stored)]
+        in_float = sorted(s for s in stored if not any(same_layer(name, s) for name in names))
         if unfilled or in_float:
             self._refuse_mismatch(unfilled, in_float)
 
