@@ -65,6 +65,17 @@ inline __m512i cvtepu16_epi32(__m256i a) { return _mm512_maskz_cvtepu16_epi32(kA
 inline __m128i cvtepi32_epi8(__m512i a) { return _mm512_maskz_cvtepi32_epi8(kAll16, a); }
 inline __m512i broadcast_i32x4(__m128i a) { return _mm512_maskz_broadcast_i32x4(kAll16, a); }
 inline __m512 permutexvar_ps(__m512i index, __m512 a) { return _mm512_maskz_permutexvar_ps(kAll16, index, a); }
+inline __m512i permutexvar_epi8(__m512i index, __m512i a) { return _mm512_maskz_permutexvar_epi8(~__mmask64{0}, index, a); }
+inline __m512i unpacklo_epi64(__m512i a, __m512i b) { return _mm512_maskz_unpacklo_epi64(0xFF, a, b); }
+inline __m512i unpackhi_epi64(__m512i a, __m512i b) { return _mm512_maskz_unpackhi_epi64(0xFF, a, b); }
+template <int kLanes>
+__m512i shuffle_i64x2(__m512i a, __m512i b) {
+  return _mm512_maskz_shuffle_i64x2(0xFF, a, b, kLanes);
+}
+template <int kHalf>
+__m256i extracti64x4(__m512i a) {
+  return _mm512_maskz_extracti64x4_epi64(0xF, a, kHalf);
+}
 inline __m512i slli_epi32(__m512i a, unsigned int count) { return _mm512_maskz_slli_epi32(kAll16, a, count); }
 inline __m512i srli_epi32(__m512i a, unsigned int count) { return _mm512_maskz_srli_epi32(kAll16, a, count); }
 inline __m512i srai_epi32(__m512i a, unsigned int count) { return _mm512_maskz_srai_epi32(kAll16, a, count); }

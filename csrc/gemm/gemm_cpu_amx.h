@@ -1,35 +1,20 @@
-// The AMX tile loop of the GEMM for many activation rows (docs/numerics.md, section 3), written once over
-// a Tiles type and a tile-product kind:
+// The AMX tile loops of the GEMM for many activation rows (docs/numerics.md, section 3), each written once
+// over a Tiles type:
 // - Tiles: NativeTiles issues the AMX instructions (the "amx" path, cpu/kernels_avx512_amx.cpp), and
 //   EmulatedTiles performs the same tile operations in scalar C++, as the instructions define them, so
-//   that the blocking, the tile configuration, the panel layout and the epilogue are tested on every
+//   that the blocking, the tile configuration, the panel layouts and the epilogue are tested on every
 //   CPU (gemm/gemm_cpu_amx_emulated.h).
-// - AmxInt8 (act_bits 8): tdpbusd of u8 activation codes q_x with s8 weight codes q_w. Per group the
-//   C tiles hold the exact integer sums sum q_x q_w (below 2^24), and the epilogue forms
-//   s_x s_w (sum q_x q_w - z_x sum q_w) in fp32, as the VNNI kernels do.
-// - AmxInt8Centered (act_bits 2/4): tdpbssd of the centered codes q_x - z_x, which fit s8 below 8 bits,
-//   so that the C tiles hold P = sum (q_x - z_x) q_w itself, the same integer: the epilogue saves the
-//   z_x sum q_w term (a quarter of its vector work, which does not overlap the tile products) and the
-//   panels their sums of q_w.
-// - act_bits 16 has a loop of its own, with the weights as the A operand (amx_bf16_gemm, below).
-//
-// Weight panels. 32 output rows at a time, over a slice of kAmxPanelDepth columns, are unpacked once
-// into the layout of the AVX-512 panel path (gemm/gemm_cpu_avx512.h, WeightPanel): steps[quad][step][32]
-// dwords, quad q covering columns 8q..8q+7 and each step one dword per output row. That is the layout of
-// B tiles: a B row is one step of the 32 output rows (128 bytes), its left 64 bytes in the B tile of
-// outputs 0..15 and its right 64 bytes in that of outputs 16..31, and consecutive steps are consecutive
-// B rows.
-// - AmxInt8 has two steps per quad, the s8 codes of the even columns 8q, 8q + 2, 8q + 4, 8q + 6, then
-//   of the odd ones; the activation codes are stored in the same order within every 8 columns, so that
-//   A's dword i meets B's row i.
-// The native path unpacks with the AVX-512 panel packers, once per slice and panel for every activation
-// row, so that unpacking is a small share of the tile work (the scalar unpacking of every call's whole
-// weight matrix that came before cost more than the tile products themselves); the emulation unpacks the
-// same layout in plain C++ (ScalarAmxPanel).
-//
-// Tiles: C0..C3 = the 2 x 2 accumulators of 32 activation rows x 32 output columns, A0/A1 = 16 activation
-// rows x a step's bytes, B0/B1 = a step's bytes / 4 rows x 64 bytes. A step is 64 bytes of A (64 columns
-// of codes), or the group's bytes where the group is smaller, so that a group is a whole number of steps.
+// - act_bits 2, 4 and 8 (amx_int8_gemm): AMX-INT8 with the s8 weight codes q_w as the A operand and the
+//   activation codes as B, per group of columns: the C tiles hold exact integer sums (below 2^24), which the
+//   epilogue scales into fp32 totals, as the VNNI kernels do. AmxInt8 (act_bits 8): tdpbsud with u8 codes
+//   q_x, and s_x s_w (sum q_x q_w - z_x sum q_w). AmxInt8Centered (act_bits 2/4): tdpbssd with the centered
+//   codes q_x - z_x, which fit s8 below 8 bits, so that the C tiles hold P = sum (q_x - z_x) q_w itself:
+//   the epilogue saves the z_x sum q_w term and the panels their sums of q_w.
+// - act_bits 16 (amx_bf16_gemm): AMX-BF16 with the dequantized weights bf16(q_w s_w) as A and bf16(x) as B,
+//   no per-group epilogue.
+// Both take the weights as A so that a panel comes from the packed rows with no transpose: an A tile row is
+// columns of one output row, in the order in which a 64-byte load holds their nibbles, and the activations,
+// transposed into B tiles once per call, take the same order.
 #pragma once
 
 #include <algorithm>
@@ -44,6 +29,7 @@
 #include "activation/act_quant_cpu_row.h"
 #include "common/cpu_dtype.h"
 #include "common/format.h"
+#include "common/scratch.h"
 #include "cpu/isa_region.h"
 #include "cpu/x86_ops.h"
 #include "parallel/parallel.h"
@@ -86,33 +72,18 @@ inline uint16_t dequantized_bf16_bits(int code, float scale) {
 }
 
 // The int8 kinds: kCentered stores q_x - z_x as s8 (act_bits 2 and 4, whose codes and zero points are at
-// most 15) and multiplies with tdpbssd; otherwise u8 codes q_x with tdpbusd and z_x sum q_w in the epilogue.
+// most 15) and multiplies with tdpbssd; otherwise u8 codes q_x with tdpbsud (the s8 weights as A, the u8
+// activations as B) and z_x sum q_w in the epilogue.
 template <bool kCenteredCodes>
 struct AmxInt8Kind {
-  static constexpr int64_t kStepsPerQuad = 2;  // B rows per 8 columns
   static constexpr bool kCentered = kCenteredCodes;
   static constexpr bool kWeightSums = !kCenteredCodes;  // sum q_w per group, for the z_x term
-  // The A bytes of 8 columns from their codes: the even columns, then the odd ones.
-  static void quad_bytes(const uint8_t* codes, uint8_t* out) {
-    for (int i = 0; i < 4; ++i) out[i] = codes[2 * i], out[4 + i] = codes[2 * i + 1];
-  }
-  // The dword of step s of quad q for one output row (packed weights `row`; columns past k are 0); the
-  // codes themselves (the group's scale is applied in the epilogue).
-  static uint32_t step_dword(const uint8_t* row, int64_t k, int64_t quad, int s) {
-    uint32_t dword = 0;
-    for (int b = 0; b < 4; ++b) {
-      const int64_t c = quad * kAmxQuadColumns + 2 * b + s;
-      const int code = c < k ? weight_code(row, c) : 0;
-      dword |= uint32_t{static_cast<uint8_t>(static_cast<int8_t>(code))} << (8 * b);
-    }
-    return dword;
-  }
   template <int kC, int kA, int kB, typename Tiles>
   static void product(Tiles& tiles) {
     if constexpr (kCentered) {
       tiles.template dpbssd<kC, kA, kB>();
     } else {
-      tiles.template dpbusd<kC, kA, kB>();
+      tiles.template dpbsud<kC, kA, kB>();
     }
   }
 };
@@ -141,9 +112,9 @@ struct EmulatedTiles {
   void store(void* base, int64_t stride) {
     for (int r = 0; r < rows[kTile]; ++r) std::memcpy(static_cast<uint8_t*>(base) + r * stride, tiles[kTile][r], bytes[kTile]);
   }
-  // tdpbusd / tdpbssd: C[m][n] += sum over the dwords i of A's row m of sum_b A[m][4i + b] * s8 B[i][4n + b],
-  // A's bytes u8 (tdpbusd) or s8 (tdpbssd).
-  template <bool kSignedA, int kC, int kA, int kB>
+  // tdpbsud / tdpbssd: C[m][n] += sum over the dwords i of A's row m of sum_b s8 A[m][4i + b] * B[i][4n + b],
+  // B's bytes u8 (tdpbsud) or s8 (tdpbssd).
+  template <bool kSignedB, int kC, int kA, int kB>
   void dot_bytes() {
     for (int m = 0; m < rows[kA]; ++m) {
       for (int n = 0; n < bytes[kC] / 4; ++n) {
@@ -151,9 +122,9 @@ struct EmulatedTiles {
         std::memcpy(&sum, &tiles[kC][m][4 * n], 4);
         for (int i = 0; i < bytes[kA] / 4; ++i) {
           for (int b = 0; b < 4; ++b) {
-            const uint8_t a_byte = tiles[kA][m][4 * i + b];
-            const int32_t a_value = kSignedA ? int32_t{static_cast<int8_t>(a_byte)} : int32_t{a_byte};
-            sum += a_value * int32_t{static_cast<int8_t>(tiles[kB][i][4 * n + b])};
+            const uint8_t b_byte = tiles[kB][i][4 * n + b];
+            const int32_t b_value = kSignedB ? int32_t{static_cast<int8_t>(b_byte)} : int32_t{b_byte};
+            sum += int32_t{static_cast<int8_t>(tiles[kA][m][4 * i + b])} * b_value;
           }
         }
         std::memcpy(&tiles[kC][m][4 * n], &sum, 4);
@@ -161,7 +132,7 @@ struct EmulatedTiles {
     }
   }
   template <int kC, int kA, int kB>
-  void dpbusd() {
+  void dpbsud() {
     dot_bytes<false, kC, kA, kB>();
   }
   template <int kC, int kA, int kB>
@@ -225,8 +196,8 @@ struct NativeTiles {
                  : "memory");
   }
   template <int kC, int kA, int kB>
-  void dpbusd() {
-    asm volatile("{tdpbusd %%tmm%c2, %%tmm%c1, %%tmm%c0|tdpbusd tmm%c0, tmm%c1, tmm%c2}" ::"i"(kC), "i"(kA), "i"(kB));
+  void dpbsud() {
+    asm volatile("{tdpbsud %%tmm%c2, %%tmm%c1, %%tmm%c0|tdpbsud tmm%c0, tmm%c1, tmm%c2}" ::"i"(kC), "i"(kA), "i"(kB));
   }
   template <int kC, int kA, int kB>
   void dpbssd() {
@@ -241,58 +212,616 @@ struct NativeTiles {
 };
 #endif
 
-// Activations as the tile loop reads them, in the order it loads the A tiles: slice by slice of
-// kAmxPanelDepth columns, within a slice block by block of kAmxRowBlock rows (the last padded with zero
-// rows), within a block step by step, the step's bytes of the block's 32 rows. So a tile load reads 1 KiB
-// in one run (rows k bytes apart would fall into the same few sets of the L1 cache at k = 4096), and a
-// panel's pass over the activations reads them in one sequence, which the prefetchers follow. Every 8
-// columns are laid out by Kind::quad_bytes, zero past k up to whole groups: the codes (u8 q_x, or s8
-// q_x - z_x), and each (row, group)'s z_x and s_x.
-template <typename Kind>
-struct AmxActivations {
-  int64_t rows = 0, groups = 0, step_bytes = 0, steps = 0;  // steps: of all the padded columns
-  std::unique_ptr<uint8_t[]> bytes;  // left uninitialized: amx_activations writes every byte
-  std::vector<float> zeros, scales;  // [m][groups]
+// Every output its bias (or 0): the product over no column. Returns whether every output is finite.
+template <typename Element>
+bool bias_outputs(const Element* bias, int64_t m, int64_t n, Element* out) {
+  const std::vector<float> zeros(n, 0.0f);
+  FiniteOutputs finite;
+  for (int64_t r = 0; r < m; ++r) finite.note(store_row_from_fp32(zeros.data(), bias, n, out + r * n));
+  return finite.all();
+}
 
-  int64_t step_columns() const { return step_bytes; }  // a byte per column
-  // The byte of (row, column), column a multiple of 8.
-  int64_t offset(int64_t row, int64_t column) const {
-    const int64_t steps_per_slice = kAmxPanelDepth / step_columns();
-    const int64_t slice = column / kAmxPanelDepth;
-    const int64_t slice_steps = std::min(steps_per_slice, steps - slice * steps_per_slice);
-    const int64_t step = column % kAmxPanelDepth / step_columns();
-    const int64_t line = slice * steps_per_slice * rows + (row / kAmxRowBlock * slice_steps + step) * kAmxRowBlock +
-                         row % kAmxRowBlock;
-    return line * step_bytes + column % step_columns();
+// outputs[m][j] = totals[j][m] for the 32 output rows j of a panel and the 32 activation rows m of a
+// block ([16, 32) only with `second_half`).
+inline void transpose_block_totals(const float* totals, bool second_half, float* outputs) {
+  for (int64_t m_half = 0; m_half < (second_half ? 2 : 1); ++m_half) {
+    for (int64_t j_half = 0; j_half < 2; ++j_half) {
+      const float* from = totals + j_half * kAmxTileRows * kAmxRowBlock + m_half * kAmxTileRows;
+      float* to = outputs + m_half * kAmxTileRows * kAmxPanelColumns + j_half * kAmxTileRows;
+#if defined(DYQ_CPU_ISA_AVX512)
+      __m512i rows[kAmxTileRows];
+      for (int j = 0; j < kAmxTileRows; ++j) rows[j] = _mm512_loadu_si512(from + j * kAmxRowBlock);
+      transpose_16x16_dwords(rows);
+      for (int r = 0; r < kAmxTileRows; ++r) _mm512_storeu_si512(to + r * kAmxPanelColumns, rows[r]);
+#else
+      for (int j = 0; j < kAmxTileRows; ++j) {
+        for (int r = 0; r < kAmxTileRows; ++r) to[r * kAmxPanelColumns + j] = from[j * kAmxRowBlock + r];
+      }
+#endif
+    }
   }
-  // The A tile of rows [row_begin, row_begin + 16) (row_begin a multiple of 16) at `column` (a multiple
-  // of step_columns()); its rows are stride() bytes apart.
-  const uint8_t* tile(int64_t row_begin, int64_t column) const { return bytes.get() + offset(row_begin, column); }
-  int64_t stride() const { return step_bytes; }
-  // Steps of the slice starting at `column` (the last slice may hold fewer).
-  int64_t slice_steps(int64_t column) const {
-    const int64_t steps_per_slice = kAmxPanelDepth / step_columns();
-    return std::min(steps_per_slice, steps - column / kAmxPanelDepth * steps_per_slice);
+}
+
+// The outputs (plus the bias) of the 32 output rows from weight_row and the block of activation rows from
+// row_begin, from the block's totals [output row][activation row]. Returns whether every output is finite.
+template <typename Element>
+bool write_block_outputs(const float* block_totals, const Element* bias, int64_t m, int64_t n, int64_t row_begin,
+                         int64_t weight_row, Element* out) {
+  alignas(64) std::array<float, kAmxPanelColumns * kAmxRowBlock> outputs;  // [activation row][output row]
+  const int64_t columns = std::min(kAmxPanelColumns, n - weight_row);
+  const int64_t block_rows = std::min(kAmxRowBlock, m - row_begin);
+  transpose_block_totals(block_totals, block_rows > kAmxTileRows, outputs.data());
+  FiniteOutputs finite;
+  for (int64_t r = 0; r < block_rows; ++r) {
+    finite.note(store_row_from_fp32(&outputs[r * kAmxPanelColumns], bias != nullptr ? bias + weight_row : nullptr,
+                                    columns, out + (row_begin + r) * n + weight_row));
+  }
+  return finite.all();
+}
+
+// The C tiles of a block to (kStore) or from a 32 x 32 buffer of dwords [output row][activation row]: C0 and
+// C2 (activation rows 0..15), and with second_half C1 and C3 (16..31).
+template <bool kStore, typename Tiles>
+void move_block_tiles(Tiles& tiles, void* block, bool second_half) {
+  constexpr int64_t kStride = kAmxRowBlock * 4;  // bytes between two output rows
+  constexpr int64_t kLower = kAmxTileRows * kStride, kRight = kAmxTileRows * 4;
+  auto* bytes = static_cast<uint8_t*>(block);
+  auto move = [&](auto tile, int64_t offset) {
+    if constexpr (kStore) {
+      tiles.template store<decltype(tile)::value>(bytes + offset, kStride);
+    } else {
+      tiles.template load<decltype(tile)::value>(bytes + offset, kStride);
+    }
+  };
+  move(std::integral_constant<int, 0>{}, 0);
+  move(std::integral_constant<int, 2>{}, kLower);
+  if (second_half) {
+    move(std::integral_constant<int, 1>{}, kRight);
+    move(std::integral_constant<int, 3>{}, kLower + kRight);
+  }
+}
+
+#if defined(DYQ_AVX512_HAS_AMX)
+// f(std::integral_constant<int, G>{}) for the group sizes the tile loops take (G divides 128), so that the
+// packers' arithmetic of groups within a load is constant.
+template <typename F>
+void with_group_size(int group_size, F&& f) {
+  if (group_size == 32) return f(std::integral_constant<int, 32>{});
+  if (group_size == 64) return f(std::integral_constant<int, 64>{});
+  f(std::integral_constant<int, 128>{});
+}
+
+// The pack() of a native panel (the scalar panels' signature): its pack_rows<G> at the call's group size.
+template <typename Panel>
+struct PackByGroupSize {
+  void pack(const uint8_t* qweight, const float* all_scales, int64_t n, int64_t k, int group_size, int64_t row_begin,
+            int64_t col_begin, int64_t depth) {
+    with_group_size(group_size, [&](auto group) {
+      static_cast<Panel*>(this)->template pack_rows<decltype(group)::value>(qweight, all_scales, n, k, row_begin,
+                                                                            col_begin, depth);
+    });
   }
 };
 
-// The bytes of A's rows in one step (the header's "Tiles").
-inline int64_t amx_step_bytes(int group_size) { return std::min<int64_t>(kAmxMaxStepBytes, group_size); }
+// The packed bytes of a row's slice two slices on (row: the slice's first byte), which the packers read next:
+// the rows of a pass, read 128 bytes a slice each, are more streams than the hardware prefetchers follow
+// (without it, W4A16 on 4096 x 4096 at 16 rows took twice as long on the Xeon with AMX; one slice ahead
+// was about as fast, 2 % to 10 % slower at 64 and 256 rows).
+inline void prefetch_row_ahead(const uint8_t* row, int64_t col_begin, int64_t k) {
+  constexpr int64_t kPrefetchSlices = 2;
+  if (col_begin + kPrefetchSlices * kAmxPanelDepth < k) {
+    const uint8_t* next = row + kPrefetchSlices * kAmxPanelDepth / 2;
+    _mm_prefetch(reinterpret_cast<const char*>(next), _MM_HINT_T0);
+    _mm_prefetch(reinterpret_cast<const char*>(next + 64), _MM_HINT_T0);
+  }
+}
+#endif
 
-// The A bytes of one step of the int8 kind from its codes in column order (step_columns a multiple of 16):
-// within every 8 columns the even ones, then the odd ones (AmxInt8::quad_bytes), one byte shuffle per 16
-// columns where SSSE3 is compiled in.
-inline void int8_step_bytes(const uint8_t* codes, int64_t step_columns, uint8_t* out) {
-#if defined(DYQ_ISA_TARGET)
-  const __m128i even_then_odd = _mm_setr_epi8(0, 2, 4, 6, 1, 3, 5, 7, 8, 10, 12, 14, 9, 11, 13, 15);
-  for (int64_t c = 0; c < step_columns; c += 16) {
-    const __m128i chunk = _mm_loadu_si128(reinterpret_cast<const __m128i*>(codes + c));
-    _mm_storeu_si128(reinterpret_cast<__m128i*>(out + c), _mm_shuffle_epi8(chunk, even_then_odd));
+// Panels per pass over the activations: the totals of a pass's panels stay in L2 while each slice of the
+// activations is read once from memory per pass and from L2 once per panel.
+constexpr int64_t kAmxPanelsPerPass = 8;
+
+// ---- AMX-INT8: the weights as the A operand ---------------------------------------------------------
+//
+// At act_bits 2, 4 and 8 the tiles multiply s8 weight codes q_w (A) with the activation codes (B), and each
+// group's integer sums are scaled into fp32 totals by the epilogue. An A tile row is step_bytes columns of
+// one output row (64, or the group where it is smaller), so that a panel comes from the packed rows with no
+// transpose, and which columns make a step is free as long as the activations' B tiles pair the same ones:
+// within each load of min(128, G) columns (64 packed bytes, or the group's), the steps take the low nibbles
+// of the load's bytes, then their high nibbles (amx_int8_column). So a load of a row is two byte lookups
+// (vpermb) and one word shift, where the weights as B had cost a 16 x 16 transpose of dwords for every
+// step of 32 output rows, about 0.2 cycles a weight on the Xeon with AMX: most of a call at 16 rows.
+//
+// Tiles: C0..C3 = output rows (0..15, 16..31 of the panel) x activation rows (0..15, 16..31 of the block);
+// A0/A1 = 16 weight rows x step_bytes; B0/B1 = step_bytes / 4 dword rows x 16 activation rows.
+
+constexpr int64_t kAmxInt8LoadColumns = 128;  // one 64-byte load of a packed row
+
+// The columns of one load of the int8 kinds' order: 128, or the group where it is smaller.
+inline int64_t amx_int8_load_columns(int group_size) { return std::min<int64_t>(kAmxInt8LoadColumns, group_size); }
+
+// The column, past the start of its load of `load_columns`, at position i of the load's order: the even
+// columns (the low nibbles of the load's bytes), then the odd ones (their high nibbles).
+inline int64_t amx_int8_column(int64_t i, int64_t load_columns) {
+  return i < load_columns / 2 ? 2 * i : 2 * (i - load_columns / 2) + 1;
+}
+
+// The activations as B tiles: for every block of 32 rows and step, the B tiles of its rows 0..15 and
+// 16..31, each step_bytes / 4 rows of 16 dwords (4 codes of each activation row, in amx_int8_column's
+// order: u8 q_x, or s8 q_x - z_x for the centered kind); slice by slice, within a slice block by block,
+// within a block step by step, so that a block's pass over a slice reads one run. Columns past k and the
+// rows past m of the last block are 0, and so are their z_x and s_x. z_x and s_x per block and group, the
+// block's 32 rows in a row, as the epilogue loads them.
+struct AmxInt8Activations {
+  int64_t blocks = 0, groups = 0, step_bytes = 0, steps = 0;  // steps over the columns padded to whole groups
+  std::unique_ptr<uint8_t[]> bytes;
+  AlignedVector<float> zeros, scales;  // [block][group][32]
+
+  int64_t tile_bytes() const { return step_bytes / 4 * 64; }
+  // The B tile of rows [16 half, 16 half + 16) of `block` at `step`; the block's next step follows its
+  // second tile.
+  uint8_t* tile(int64_t block, int64_t step, int half) const {
+    const int64_t steps_per_slice = kAmxPanelDepth / step_bytes;
+    const int64_t slice = step / steps_per_slice;
+    const int64_t slice_steps = std::min(steps_per_slice, steps - slice * steps_per_slice);
+    const int64_t step_index = slice * steps_per_slice * blocks + block * slice_steps + step % steps_per_slice;
+    return bytes.get() + (2 * step_index + half) * tile_bytes();
+  }
+  const float* params(const AlignedVector<float>& values, int64_t block, int64_t group) const {
+    return values.data() + (block * groups + group) * kAmxRowBlock;
+  }
+};
+
+template <typename Kind, typename Element>
+AmxInt8Activations amx_int8_activations(const Element* x, int64_t m, int64_t k, int group_size, int act_bits) {
+  AmxInt8Activations a;
+  a.groups = group_count(k, group_size);
+  a.step_bytes = std::min<int64_t>(kAmxMaxStepBytes, group_size);
+  const int64_t padded = a.groups * group_size;  // columns, zero past k
+  a.steps = padded / a.step_bytes;
+  a.blocks = (m + kAmxRowBlock - 1) / kAmxRowBlock;
+  a.bytes.reset(new uint8_t[a.blocks * a.steps * 2 * a.tile_bytes()]);
+  a.zeros.assign(a.blocks * a.groups * kAmxRowBlock, 0.0f);
+  a.scales.assign(a.blocks * a.groups * kAmxRowBlock, 0.0f);
+  const int64_t load_columns = amx_int8_load_columns(group_size);
+  const int64_t quads = a.step_bytes / 4;  // B tile rows
+  // The bytes of a load at positions [64 i, 64 i + 64) of its order, as indices into the load's 128 bytes.
+  [[maybe_unused]] alignas(64) uint8_t load_order[2][64] = {};
+  for (int64_t position = 0; position < load_columns; ++position) {
+    load_order[position / 64][position % 64] = static_cast<uint8_t>(amx_int8_column(position, load_columns));
+  }
+  // B tile by B tile (16 rows): the rows' codes in column order, then each step's bytes in the load order,
+  // transposed into the tile's dword rows. A tile whose rows pass m gets zero rows; a block's second tile
+  // with no row below m is not written, and the tile loop does not read it.
+  parallel_for(0, (m + kAmxTileRows - 1) / kAmxTileRows, 1, [&](int64_t tile_begin, int64_t tile_end) {
+    std::vector<float> values(std::is_same_v<Element, float> ? 0 : kAmxTileRows * k);
+    AlignedVector<uint8_t> codes(kAmxTileRows * padded);
+    std::vector<ActivationGroupParams> params(kAmxTileRows * a.groups);
+    for (int64_t t = tile_begin; t < tile_end; ++t) {
+      const int64_t first_row = t * kAmxTileRows, rows = std::min(kAmxTileRows, m - first_row);
+      const float* v = nullptr;
+      if constexpr (std::is_same_v<Element, float>) {
+        v = x + first_row * k;
+      } else {
+        for (int64_t r = 0; r < rows; ++r) load_row_fp32(x + (first_row + r) * k, k, values.data() + r * k);
+        v = values.data();
+      }
+      std::fill(codes.begin(), codes.end(), uint8_t{0});  // 0 past k and for the rows past m
+      quantize_values(v, rows, k, group_size, act_bits, codes.data(), padded, params.data());
+      const int64_t block = t / 2, lane_offset = t % 2 * kAmxTileRows;
+      for (int64_t r = 0; r < rows; ++r) {
+        uint8_t* row_codes = codes.data() + r * padded;
+        for (int64_t g = 0; g < a.groups; ++g) {
+          const ActivationGroupParams& p = params[r * a.groups + g];
+          if constexpr (Kind::kCentered) {
+            // q_x - z_x as s8 bytes (the columns past k stay 0).
+            const int64_t columns = group_columns(k, group_size, g);
+            for (int64_t c = 0; c < columns; ++c) row_codes[g * group_size + c] -= static_cast<uint8_t>(p.zero);
+          }
+          a.zeros[(block * a.groups + g) * kAmxRowBlock + lane_offset + r] = static_cast<float>(p.zero);
+          a.scales[(block * a.groups + g) * kAmxRowBlock + lane_offset + r] = p.scale;
+        }
+      }
+      for (int64_t step = 0; step < a.steps; ++step) {
+        const int64_t position = step * a.step_bytes % load_columns;  // of the step in its load's order
+        const int64_t load_begin = step * a.step_bytes - position;
+        uint8_t* tile = a.tile(block, step, static_cast<int>(t % 2));
+#if defined(DYQ_CPU_ISA_AVX512)
+        // The step's bytes of each row: one two-table byte permute of its load (load_order).
+        const __m512i index = _mm512_load_si512(load_order[position / 64]);
+        const __mmask64 load_mask = load_columns >= 64 ? ~__mmask64{0} : (__mmask64{1} << load_columns) - 1;
+        __m512i dwords[kAmxTileRows];
+        for (int64_t lane = 0; lane < kAmxTileRows; ++lane) {
+          const uint8_t* load = codes.data() + lane * padded + load_begin;
+          const __m512i first = _mm512_maskz_loadu_epi8(load_mask, load);
+          const __m512i second = load_columns > 64 ? _mm512_loadu_si512(load + 64) : _mm512_setzero_si512();
+          dwords[lane] = _mm512_permutex2var_epi8(first, index, second);
+        }
+        transpose_16x16_dwords(dwords);
+        for (int64_t q = 0; q < quads; ++q) _mm512_storeu_si512(tile + 64 * q, dwords[q]);
+#else
+        for (int64_t lane = 0; lane < kAmxTileRows; ++lane) {
+          const uint8_t* load = codes.data() + lane * padded + load_begin;
+          for (int64_t q = 0; q < quads; ++q) {
+            for (int b = 0; b < 4; ++b) tile[64 * q + 4 * lane + b] = load[amx_int8_column(position + 4 * q + b, load_columns)];
+          }
+        }
+#endif
+      }
+    }
+  });
+  return a;
+}
+
+// A panel: 32 output rows x kAmxPanelDepth columns of s8 codes q_w, step by step (amx_int8_column's order),
+// within a step row by row, so that an A tile is one run; each group's s_w and, for AmxInt8, sum q_w per
+// output row. Rows past n and columns past k are 0. ScalarAmxInt8Panel is the emulation's, in plain C++.
+template <typename Kind>
+struct AmxInt8PanelLayout {
+  static constexpr int64_t kGroups = kAmxPanelDepth / 32;  // at the smallest group size
+  alignas(64) int8_t codes[kAmxPanelDepth * kAmxPanelColumns];
+  alignas(64) float scales[kGroups * kAmxPanelColumns];       // [group][32]
+  alignas(64) float weight_sums[kGroups * kAmxPanelColumns];  // [group][32], AmxInt8
+
+  // The A tile of output rows [16 half, 16 half + 16) at `step` (of the slice); its rows are step_bytes apart.
+  const uint8_t* tile(int64_t step, int64_t step_bytes, int half) const {
+    return reinterpret_cast<const uint8_t*>(codes) + (step * kAmxPanelColumns + half * kAmxTileRows) * step_bytes;
+  }
+};
+
+template <typename Kind>
+struct ScalarAmxInt8Panel : AmxInt8PanelLayout<Kind> {
+  void pack(const uint8_t* qweight, const float* all_scales, int64_t n, int64_t k, int group_size, int64_t row_begin,
+            int64_t col_begin, int64_t depth) {
+    const int64_t groups = group_count(k, group_size);
+    const int64_t first_group = col_begin / group_size;
+    const int64_t panel_groups = group_count(depth, group_size);
+    const int64_t step_bytes = std::min<int64_t>(kAmxMaxStepBytes, group_size);
+    const int64_t load_columns = amx_int8_load_columns(group_size);
+    for (int64_t j = 0; j < kAmxPanelColumns; ++j) {
+      const int64_t output = row_begin + j;
+      const uint8_t* row = qweight + output * (k / 2);
+      for (int64_t i = 0; i < panel_groups * group_size; ++i) {
+        const int64_t column = col_begin + i / load_columns * load_columns + amx_int8_column(i % load_columns, load_columns);
+        this->codes[(i / step_bytes * kAmxPanelColumns + j) * step_bytes + i % step_bytes] =
+            static_cast<int8_t>(output < n && column < k ? weight_code(row, column) : 0);
+      }
+      for (int64_t g = 0; g < panel_groups; ++g) {
+        this->scales[g * kAmxPanelColumns + j] = output < n ? all_scales[output * groups + first_group + g] : 0.0f;
+        if constexpr (Kind::kWeightSums) {
+          const int64_t first = col_begin + g * group_size, last = output < n ? std::min(first + group_size, k) : first;
+          float sum = 0.0f;
+          for (int64_t c = first; c < last; ++c) sum += static_cast<float>(weight_code(row, c));
+          this->weight_sums[g * kAmxPanelColumns + j] = sum;
+        }
+      }
+    }
+  }
+};
+
+#if defined(DYQ_AVX512_HAS_AMX)
+// The same panel from AVX-512: per 64-byte load of a row (128 columns), the s8 codes of its low nibbles are
+// a byte lookup (vpermb, which reads the low six bits of each index byte, in a table of the 16 codes four
+// times over), and those of its high nibbles the same lookup of the bytes shifted down by 4 within each
+// word. At G = 128 they are the load's two steps; at G = 64 and 32 the halves or quarters of both make
+// each group's step (one two-source permute of quadwords each). sum q_w: the bytes' sums (vpsadbw) of the
+// low plus the high codes plus 128, reduced across 8 rows at a time (add_group_sums).
+template <typename Kind>
+struct AmxInt8Panel : AmxInt8PanelLayout<Kind>, PackByGroupSize<AmxInt8Panel<Kind>> {
+  // pack(): PackByGroupSize.
+  template <int kGroup>
+  void pack_rows(const uint8_t* qweight, const float* all_scales, int64_t n, int64_t k, int64_t row_begin,
+                 int64_t col_begin, int64_t depth) {
+    constexpr int kGroupsPerLoad = kAmxInt8LoadColumns / kGroup;
+    constexpr int64_t kStepBytes = std::min<int64_t>(kAmxMaxStepBytes, kGroup);
+    constexpr int64_t kStepStride = kAmxPanelColumns * kStepBytes;  // bytes from a row's step to its next
+    alignas(64) static constexpr int8_t kCodes[64] = {
+        0, 1, 2, 3, 4, 5, 6, 7, -8, -7, -6, -5, -4, -3, -2, -1, 0, 1, 2, 3, 4, 5, 6, 7, -8, -7, -6, -5, -4, -3, -2, -1,
+        0, 1, 2, 3, 4, 5, 6, 7, -8, -7, -6, -5, -4, -3, -2, -1, 0, 1, 2, 3, 4, 5, 6, 7, -8, -7, -6, -5, -4, -3, -2, -1};
+    const __m512i codes = _mm512_load_si512(kCodes);
+    const __m512i offset = _mm512_set1_epi8(static_cast<char>(0x80));
+    // The quadword lanes of a step from the low (0..7) and high (8..15) codes: at G = 64 the halves, at G = 32
+    // the quarters of each, side by side.
+    const __m512i first_steps = kGroup == 64 ? _mm512_setr_epi64(0, 1, 2, 3, 8, 9, 10, 11)
+                                             : _mm512_setr_epi64(0, 1, 8, 9, 2, 3, 10, 11);
+    const __m512i second_steps = kGroup == 64 ? _mm512_setr_epi64(4, 5, 6, 7, 12, 13, 14, 15)
+                                              : _mm512_setr_epi64(4, 5, 12, 13, 6, 7, 14, 15);
+    const int64_t groups = group_count(k, kGroup);
+    const int64_t first_group = col_begin / kGroup;
+    const int64_t panel_groups = group_count(depth, kGroup);
+    const int64_t loads = group_count(panel_groups * kGroup, kAmxInt8LoadColumns);
+    const int64_t row_bytes = k / 2;
+    auto* out = reinterpret_cast<uint8_t*>(this->codes);
+    // AmxInt8: per load and row the quadword sums of q_w (16 columns each, plus 8 x 128), reduced below 8 rows
+    // at once.
+    [[maybe_unused]] __m512i row_sums[kAmxPanelDepth / kAmxInt8LoadColumns][kAmxPanelColumns];
+    for (int64_t j = 0; j < kAmxPanelColumns; ++j) {
+      const int64_t output = row_begin + j;
+      if (output >= n) {
+        for (int64_t i = 0; i < panel_groups * kGroup / kStepBytes; ++i) {
+          std::memset(out + i * kStepStride + j * kStepBytes, 0, kStepBytes);
+        }
+        for (int64_t g = 0; g < panel_groups; ++g) this->scales[g * kAmxPanelColumns + j] = 0.0f;
+        // The quadword sums of all-zero codes: sum q_w = 0.
+        for (int64_t load = 0; load < loads; ++load) row_sums[load][j] = _mm512_set1_epi64(8 * 128);
+        continue;
+      }
+      const uint8_t* row = qweight + output * row_bytes + col_begin / 2;
+      for (int64_t g = 0; g < panel_groups; ++g) {
+        this->scales[g * kAmxPanelColumns + j] = all_scales[output * groups + first_group + g];
+      }
+      prefetch_row_ahead(row, col_begin, k);
+      for (int64_t load = 0; load < loads; ++load) {
+        const int64_t column = col_begin + load * kAmxInt8LoadColumns;
+        // Past k the load reads nothing (code 0): the row may end there, and the matrix with it.
+        const int64_t bytes = std::max<int64_t>(0, std::min<int64_t>((k - column) / 2, 64));
+        const __mmask64 byte_mask = bytes >= 64 ? ~__mmask64{0} : (__mmask64{1} << bytes) - 1;
+        const __m512i packed = _mm512_maskz_loadu_epi8(byte_mask, row + load * 64);
+        const __m512i low = permutexvar_epi8(packed, codes);
+        const __m512i high = permutexvar_epi8(_mm512_srli_epi16(packed, 4), codes);
+        uint8_t* steps = out + load * (kAmxInt8LoadColumns / kStepBytes) * kStepStride + j * kStepBytes;
+        if constexpr (kGroup == 128) {
+          _mm512_store_si512(steps, low);
+          _mm512_store_si512(steps + kStepStride, high);
+        } else {
+          const __m512i first = _mm512_permutex2var_epi64(low, first_steps, high);
+          const __m512i second = _mm512_permutex2var_epi64(low, second_steps, high);
+          if constexpr (kGroup == 64) {
+            _mm512_store_si512(steps, first);
+            _mm512_store_si512(steps + kStepStride, second);
+          } else {
+            _mm256_store_si256(reinterpret_cast<__m256i*>(steps), extracti64x4<0>(first));
+            _mm256_store_si256(reinterpret_cast<__m256i*>(steps + kStepStride), extracti64x4<1>(first));
+            _mm256_store_si256(reinterpret_cast<__m256i*>(steps + 2 * kStepStride), extracti64x4<0>(second));
+            _mm256_store_si256(reinterpret_cast<__m256i*>(steps + 3 * kStepStride),
+                               extracti64x4<1>(second));
+          }
+        }
+        if constexpr (Kind::kWeightSums) {
+          // Per quadword the sum over 8 bytes of (low + high codes) + 128 (below 256): 16 columns of one group.
+          row_sums[load][j] = _mm512_sad_epu8(_mm512_xor_si512(_mm512_add_epi8(low, high), offset), _mm512_setzero_si512());
+        }
+      }
+    }
+    if constexpr (Kind::kWeightSums) {
+      for (int64_t load = 0; load < loads; ++load) {
+        for (int64_t j = 0; j < kAmxPanelColumns; j += 8) {
+          add_group_sums<kGroupsPerLoad>(row_sums[load] + j, load * kGroupsPerLoad, panel_groups, j);
+        }
+      }
+    }
+  }
+
+  // weight_sums of rows j..j+7 for the groups [first_group, first_group + kGroupsPerLoad) of one load (those
+  // below panel_groups) from the rows' quadword sums (16 columns of q_w, plus 8 x 128): three levels of pairwise sums across the
+  // rows (a vector per 8 rows, where one row at a time took a horizontal sum each), the groups of a load
+  // being its quadwords' halves (G = 64) or quarters (G = 32), which the first levels hold apart.
+  template <int kGroupsPerLoad>
+  void add_group_sums(const __m512i* rows, int64_t first_group, int64_t panel_groups, int64_t j) {
+    constexpr int64_t kGroup = kAmxInt8LoadColumns / kGroupsPerLoad;
+    constexpr int64_t kOffset = 8 * 128 * kGroup / 16;  // of a group's quadwords
+    // Level 1: lane l of pairs[p] = (row 2p, row 2p + 1) over quadwords 2l and 2l + 1 (G = 32: group l).
+    __m512i pairs[4];
+    for (int p = 0; p < 4; ++p) {
+      pairs[p] = _mm512_add_epi64(unpacklo_epi64(rows[2 * p], rows[2 * p + 1]),
+                                  unpackhi_epi64(rows[2 * p], rows[2 * p + 1]));
+    }
+    alignas(64) int64_t lanes[8];
+    if constexpr (kGroupsPerLoad == 4) {
+      for (int p = 0; p < 4; ++p) {
+        _mm512_store_si512(lanes, pairs[p]);
+        for (int g = 0; g < 4 && first_group + g < panel_groups; ++g) {
+          for (int e = 0; e < 2; ++e) {
+            this->weight_sums[(first_group + g) * kAmxPanelColumns + j + 2 * p + e] =
+                static_cast<float>(lanes[2 * g + e] - kOffset);
+          }
+        }
+      }
+      return;
+    }
+    // Level 2: quads[q] lanes = rows (4q, 4q + 1) over quadwords 0..3, then 4..7 (G = 64: groups 0 and 1),
+    // then rows (4q + 2, 4q + 3) the same.
+    __m512i quads[2];
+    for (int q = 0; q < 2; ++q) {
+      quads[q] = _mm512_add_epi64(shuffle_i64x2<0x88>(pairs[2 * q], pairs[2 * q + 1]),
+                                  shuffle_i64x2<0xDD>(pairs[2 * q], pairs[2 * q + 1]));
+    }
+    if constexpr (kGroupsPerLoad == 2) {
+      for (int q = 0; q < 2; ++q) {
+        _mm512_store_si512(lanes, quads[q]);
+        for (int g = 0; g < 2 && first_group + g < panel_groups; ++g) {
+          for (int half = 0; half < 2; ++half) {
+            for (int e = 0; e < 2; ++e) {
+              this->weight_sums[(first_group + g) * kAmxPanelColumns + j + 4 * q + 2 * half + e] =
+                  static_cast<float>(lanes[4 * half + 2 * g + e] - kOffset);
+            }
+          }
+        }
+      }
+      return;
+    }
+    // Level 3: rows 0..7 in order, each over its whole load (G = 128: its group).
+    const __m512i totals = _mm512_add_epi64(shuffle_i64x2<0x88>(quads[0], quads[1]),
+                                            shuffle_i64x2<0xDD>(quads[0], quads[1]));
+    const __m256 sums = _mm512_cvtepi64_ps(_mm512_sub_epi64(totals, _mm512_set1_epi64(kOffset)));
+    _mm256_storeu_ps(&this->weight_sums[first_group * kAmxPanelColumns + j], sums);
+  }
+};
+#endif
+
+// totals[j][0..16) (and [16, 32) with kSecondHalf) += one group's contribution for the 32 output rows j of a
+// panel and a block's activation rows, from the group's C tiles `sums` ([output row][activation row]; the
+// epilogue of the int8 kinds, docs/numerics.md section 3):
+// - AmxInt8: P = sum q_x q_w - z_x sum q_w, exact in fp32 (integers below 2^24), times s_x s_w;
+// - AmxInt8Centered: P = the C tiles' sum (q_x - z_x) q_w, times s_x s_w.
+// zeros and row_scales: z_x and s_x of the block's 32 rows; weight_scales and weight_sums: s_w and sum q_w of
+// the 32 output rows. On AVX-512 the rows' factors stay in registers over the outputs; the scaling runs on
+// the vector units beside the AMX unit's tile products and costs about as much, so every instruction counts.
+template <typename Kind, bool kSecondHalf>
+void add_group_to_totals(const uint32_t (*sums)[kAmxRowBlock], const float* zeros, const float* row_scales,
+                         const float* weight_scales, const float* weight_sums, float* totals) {
+  constexpr int64_t kRows = kSecondHalf ? kAmxRowBlock : kAmxTileRows;
+#if defined(DYQ_CPU_ISA_AVX512)
+  constexpr int kHalves = kRows / 16;
+  __m512 row_scale[kHalves], zero[kHalves];
+  for (int h = 0; h < kHalves; ++h) {
+    row_scale[h] = _mm512_loadu_ps(row_scales + 16 * h);
+    if constexpr (!Kind::kCentered) zero[h] = _mm512_loadu_ps(zeros + 16 * h);
+  }
+  for (int64_t j = 0; j < kAmxPanelColumns; ++j) {
+    const __m512 weight_scale = _mm512_set1_ps(weight_scales[j]);
+    float* total = totals + j * kAmxRowBlock;
+    for (int h = 0; h < kHalves; ++h) {
+      __m512 partial = cvtepi32_ps(_mm512_load_si512(sums[j] + 16 * h));
+      if constexpr (!Kind::kCentered) partial = _mm512_fnmadd_ps(zero[h], _mm512_set1_ps(weight_sums[j]), partial);
+      _mm512_store_ps(total + 16 * h,
+                      _mm512_fmadd_ps(partial, _mm512_mul_ps(row_scale[h], weight_scale), _mm512_load_ps(total + 16 * h)));
+    }
   }
 #else
-  for (int64_t c = 0; c < step_columns; c += kAmxQuadColumns) AmxInt8::quad_bytes(codes + c, out + c);
+  for (int64_t j = 0; j < kAmxPanelColumns; ++j) {
+    for (int64_t r = 0; r < kRows; ++r) {
+      // The centered codes' sums are P already: no z_x term.
+      const float partial = static_cast<float>(static_cast<int32_t>(sums[j][r])) -
+                            (Kind::kCentered ? 0.0f : zeros[r] * weight_sums[j]);
+      totals[j * kAmxRowBlock + r] += partial * (row_scales[r] * weight_scales[j]);
+    }
+  }
 #endif
 }
+
+// out = x W^T (+ bias) through the AMX-INT8 tiles with the weights as A (above): AmxInt8Centered at act_bits
+// 2/4, AmxInt8 at 8; Panel is ScalarAmxInt8Panel<Kind> or AmxInt8Panel<Kind>. Threads split the panels of
+// 32 output rows; each takes them kAmxPanelsPerPass at a time, and per slice of columns unpacks each panel
+// of the pass into a buffer that stays in L1 and runs it against every block of activation rows, group by
+// group: the group's C tiles go to one of two buffers, and the previous group's are scaled into the
+// totals of the pass ([panel][block][output row][activation row]) after this group's tile products are
+// issued, so that the AMX unit works through those while the vector units scale (they would otherwise take
+// turns). Two panel buffers alternate, so that the group being scaled keeps its panel's s_w and sum q_w
+// while the next panel is unpacked. Returns whether every output is finite.
+template <typename Tiles, typename Kind, typename Panel, typename Element>
+bool amx_int8_gemm(const Element* x, const uint8_t* qweight, const float* scales, const Element* bias, int64_t m,
+                   int64_t n, int64_t k, int group_size, int act_bits, Element* out) {
+  // No column: no slice runs the loop below, whose last group writes the outputs.
+  if (k == 0) return bias_outputs(bias, m, n, out);
+  const AmxInt8Activations a = amx_int8_activations<Kind>(x, m, k, group_size, act_bits);
+  const int64_t step_bytes = a.step_bytes;
+  const int64_t b_tile_bytes = a.tile_bytes();
+  // Everything the loops step by, computed once: a division per group cost as much as a tile product.
+  const int64_t steps_per_group = group_size / step_bytes;
+  const int64_t groups_per_slice = kAmxPanelDepth / group_size;
+  constexpr int64_t kBlockTotals = kAmxPanelColumns * kAmxRowBlock;  // a panel's totals of one block
+  const int64_t panels = (n + kAmxPanelColumns - 1) / kAmxPanelColumns;
+  FiniteOutputs finite;
+  parallel_for(0, panels, 1, [&](int64_t panel_begin, int64_t panel_end) {
+    Tiles tiles;
+    tiles.configure(step_bytes);
+    std::unique_ptr<Panel[]> panel_buffers(new Panel[2]);
+    int panel_buffer = 0;
+    const int64_t pass_size = std::min(kAmxPanelsPerPass, panel_end - panel_begin);
+    AlignedVector<float> totals(pass_size * a.blocks * kBlockTotals);
+    alignas(64) uint32_t sums[2][kAmxPanelColumns][kAmxRowBlock];  // [buffer][output row][activation row]
+    int sums_buffer = 0;
+    // A group whose C tiles wait in sums[sums_buffer ^ 1] to be scaled into the totals.
+    struct Pending {
+      const Panel* panel = nullptr;  // nullptr: none
+      int64_t group = 0, global_group = 0, block = 0, weight_row = 0;
+      float* block_totals = nullptr;
+    } pending;
+    auto scale_pending = [&] {
+      const Pending& job = pending;
+      if (job.panel == nullptr) return;
+      const int64_t row_begin = job.block * kAmxRowBlock;
+      const float* zeros = a.params(a.zeros, job.block, job.global_group);
+      const float* row_scales = a.params(a.scales, job.block, job.global_group);
+      const float* weight_scales = &job.panel->scales[job.group * kAmxPanelColumns];
+      const float* weight_sums = &job.panel->weight_sums[job.group * kAmxPanelColumns];
+      const bool second_half = m - row_begin > kAmxTileRows;
+      if (second_half) {
+        add_group_to_totals<Kind, true>(sums[sums_buffer ^ 1], zeros, row_scales, weight_scales, weight_sums,
+                                        job.block_totals);
+      } else {
+        add_group_to_totals<Kind, false>(sums[sums_buffer ^ 1], zeros, row_scales, weight_scales, weight_sums,
+                                         job.block_totals);
+      }
+      // The block's last group: its outputs, while its totals are in L1.
+      if (job.global_group + 1 == a.groups) {
+        finite.note(write_block_outputs(job.block_totals, bias, m, n, row_begin, job.weight_row, out));
+      }
+      pending.panel = nullptr;
+    };
+    for (int64_t pass_begin = panel_begin; pass_begin < panel_end; pass_begin += pass_size) {
+      const int pass_count = static_cast<int>(std::min(pass_size, panel_end - pass_begin));
+      std::fill(totals.begin(), totals.end(), 0.0f);
+      for (int64_t slice = 0, slice_group = 0; slice < k; slice += kAmxPanelDepth, slice_group += groups_per_slice) {
+        const int64_t depth = std::min(kAmxPanelDepth, k - slice);
+        const int64_t slice_groups = group_count(depth, group_size);
+        const int64_t first_step = slice / step_bytes;
+        for (int i = 0; i < pass_count; ++i) {
+          const int64_t weight_row = (pass_begin + i) * kAmxPanelColumns;
+          Panel& panel = panel_buffers[panel_buffer];
+          panel_buffer ^= 1;
+          panel.pack(qweight, scales, n, k, group_size, weight_row, slice, depth);
+          for (int64_t block = 0; block < a.blocks; ++block) {
+            // A block of 16 rows or fewer (M <= 16, or the rows' last block) has nothing in its second B
+            // tile: C1 and C3 are neither computed nor loaded or stored, half the block's tile work.
+            const bool second_half = m - block * kAmxRowBlock > kAmxTileRows;
+            float* block_totals = &totals[(i * a.blocks + block) * kBlockTotals];
+            const uint8_t* b_tile = a.tile(block, first_step, 0);
+            for (int64_t group = 0; group < slice_groups; ++group) {
+              tiles.template zero<0>();
+              tiles.template zero<2>();
+              if (second_half) {
+                tiles.template zero<1>();
+                tiles.template zero<3>();
+              }
+              for (int64_t s = group * steps_per_group; s < (group + 1) * steps_per_group; ++s) {
+                tiles.template load<6>(b_tile, 64);
+                tiles.template load<4>(panel.tile(s, step_bytes, 0), step_bytes);
+                Kind::template product<0, 4, 6>(tiles);
+                tiles.template load<5>(panel.tile(s, step_bytes, 1), step_bytes);
+                Kind::template product<2, 5, 6>(tiles);
+                if (second_half) {
+                  tiles.template load<7>(b_tile + b_tile_bytes, 64);
+                  Kind::template product<1, 4, 7>(tiles);
+                  Kind::template product<3, 5, 7>(tiles);
+                }
+                b_tile += 2 * b_tile_bytes;
+              }
+              scale_pending();
+              move_block_tiles<true>(tiles, sums[sums_buffer], second_half);
+              pending = {&panel, group, slice_group + group, block, weight_row, block_totals};
+              sums_buffer ^= 1;
+            }
+          }
+        }
+      }
+      // The pass's last group, before the next pass clears the totals.
+      scale_pending();
+    }
+    tiles.release();
+  });
+  return finite.all();
+}
+
+// ---- AMX-BF16: the weights as the A operand ---------------------------------------------------------
+//
+// At act_bits 16 the tiles multiply bf16(x) with the dequantized weights bf16(q_w s_w), which no
+// per-group scale follows, so the C tiles accumulate a whole slice onto the running totals. Here the
+// weights are the A tiles and the activations the B tiles, so that a weight panel comes from the packed
+// rows with no transpose: an A tile row is 32 columns of one output row. Which 32 is free, as long as the
+// B tiles pair the same columns of x, and the panels take the order in which the packed bytes hold them:
+// a 64-byte load of a row is 128 columns, 32 words of four nibbles (column 4 w + p in nibble p of word w),
+// and step p of those 128 columns is the 32 columns of nibble p (nibble_order_words). So a step of a row
+// is one word shift and one word lookup in a table of its groups' values (bf16(q s_w) for the 16 codes),
+// where columns in order had cost a byte permute more, and the activations are put in that order once per
+// call, as they are transposed into B tiles. The transposes move to the activations (once per call) and
+// the outputs (once per output); with the weights as B, every call transposed all of them into their
+// tile layout, three times the instructions, and at 16 activation rows that unpacking was most of the
+// call.
+//
+// Tiles: C0..C3 = output rows (0..15, 16..31 of the panel) x activation rows (0..15, 16..31 of the block);
+// A0/A1 = 16 weight rows x 32 columns (64 bytes); B0/B1 = 16 column pairs x 16 activation rows.
 
 // The bf16 bit patterns of 8 fp32 values, in column order.
 inline void bf16_quad_bytes(const float* values, uint8_t* out) {
@@ -327,339 +856,6 @@ inline void bf16_step_bytes(const float* values, int64_t columns_in_k, int64_t s
     }
   }
 }
-
-template <typename Kind, typename Element>
-AmxActivations<Kind> amx_activations(const Element* x, int64_t m, int64_t k, int group_size, int act_bits) {
-  AmxActivations<Kind> a;
-  a.groups = group_count(k, group_size);
-  a.step_bytes = amx_step_bytes(group_size);
-  a.steps = a.groups * group_size / a.step_columns();
-  a.rows = (m + kAmxRowBlock - 1) / kAmxRowBlock * kAmxRowBlock;
-  // Every byte of the rows below m is written below; only the padding rows of the last block are zeroed.
-  a.bytes.reset(new uint8_t[a.rows * a.steps * a.step_bytes]);
-  a.zeros.resize(m * a.groups);
-  a.scales.resize(m * a.groups);
-  const int64_t padded = a.groups * group_size;  // columns, zero past k
-  const int64_t step_columns = a.step_columns();
-  const int64_t line_bytes = kAmxRowBlock * a.step_bytes;  // a slice's consecutive steps of one row
-  for (int64_t r = m; r < a.rows; ++r) {
-    for (int64_t slice = 0; slice < padded; slice += kAmxPanelDepth) {
-      uint8_t* line = a.bytes.get() + a.offset(r, slice);
-      for (int64_t step = slice; step < std::min(padded, slice + kAmxPanelDepth); step += step_columns) {
-        std::memset(line, 0, a.step_bytes);
-        line += line_bytes;
-      }
-    }
-  }
-  parallel_for(0, m, 16, [&](int64_t row_begin, int64_t row_end) {
-    std::vector<float> row(padded, 0.0f);  // x in fp32, where it is not fp32 already
-    std::vector<uint8_t> codes(padded, 0);  // stays 0 past k
-    for (int64_t r = row_begin; r < row_end; ++r) {
-      const float* values = row_as_fp32(x + r * k, k, row.data());
-      for (int64_t g = 0; g < a.groups; ++g) {
-        const int64_t columns = group_columns(k, group_size, g);
-        uint8_t* group_codes = codes.data() + g * group_size;
-        const ActivationGroupParams params = quantize_group(values + g * group_size, columns, act_bits, group_codes);
-        if constexpr (Kind::kCentered) {
-          // q_x - z_x as s8 bytes (the columns past k stay 0).
-          for (int64_t c = 0; c < columns; ++c) group_codes[c] = static_cast<uint8_t>(group_codes[c] - params.zero);
-        }
-        a.zeros[r * a.groups + g] = static_cast<float>(params.zero);
-        a.scales[r * a.groups + g] = params.scale;
-      }
-      // Step by step into the row's line of each step's tile (one offset per slice: the steps of a
-      // slice's block are a line of 32 rows apart).
-      for (int64_t slice = 0; slice < padded; slice += kAmxPanelDepth) {
-        uint8_t* line = a.bytes.get() + a.offset(r, slice);
-        const int64_t slice_end = std::min(padded, slice + kAmxPanelDepth);
-        for (int64_t step = slice; step < slice_end; step += step_columns, line += line_bytes) {
-          int8_step_bytes(codes.data() + step, step_columns, line);
-        }
-      }
-    }
-  });
-  return a;
-}
-
-// The panel layout in plain C++ (the emulation's unpacking; the native path uses the AVX-512 packers of
-// the same layout): the steps, each group's s_w and, for AmxInt8, sum q_w per output row.
-template <typename Kind>
-struct ScalarAmxPanel {
-  static constexpr int64_t kQuads = kAmxPanelDepth / kAmxQuadColumns;
-  static constexpr int64_t kGroups = kAmxPanelDepth / 32;  // at the smallest group size
-  std::vector<int32_t> steps = std::vector<int32_t>(kQuads * Kind::kStepsPerQuad * kAmxPanelColumns);
-  std::vector<float> scales = std::vector<float>(kGroups * kAmxPanelColumns);
-  std::vector<float> weight_sums = std::vector<float>(kGroups * kAmxPanelColumns);
-
-  // Columns [col_begin, col_begin + depth) of weight rows [row_begin, row_begin + 32); rows past n and
-  // columns past k are 0.
-  void pack(const uint8_t* qweight, const float* all_scales, int64_t n, int64_t k, int group_size, int64_t row_begin,
-            int64_t col_begin, int64_t depth) {
-    const int64_t groups = group_count(k, group_size);
-    const int64_t first_group = col_begin / group_size;
-    const int64_t panel_groups = group_count(depth, group_size);
-    std::fill(steps.begin(), steps.end(), 0);
-    std::fill(weight_sums.begin(), weight_sums.end(), 0.0f);
-    for (int64_t j = 0; j < kAmxPanelColumns; ++j) {
-      const int64_t output = row_begin + j;
-      if (output >= n) {
-        for (int64_t g = 0; g < panel_groups; ++g) scales[g * kAmxPanelColumns + j] = 0.0f;
-        continue;
-      }
-      const uint8_t* row = qweight + output * (k / 2);
-      for (int64_t quad = 0; quad * kAmxQuadColumns < depth; ++quad) {
-        for (int s = 0; s < Kind::kStepsPerQuad; ++s) {
-          const uint32_t dword = Kind::step_dword(row, k, col_begin / kAmxQuadColumns + quad, s);
-          std::memcpy(&steps[(quad * Kind::kStepsPerQuad + s) * kAmxPanelColumns + j], &dword, 4);
-        }
-      }
-      for (int64_t g = 0; g < panel_groups; ++g) {
-        scales[g * kAmxPanelColumns + j] = all_scales[output * groups + first_group + g];
-        if constexpr (Kind::kWeightSums) {
-          const int64_t first = col_begin + g * group_size, last = std::min(first + group_size, k);
-          float sum = 0.0f;
-          for (int64_t c = first; c < last; ++c) sum += static_cast<float>(weight_code(row, c));
-          weight_sums[g * kAmxPanelColumns + j] = sum;
-        }
-      }
-    }
-  }
-};
-
-// Groups whose sums are scaled into the totals together: each row's totals are loaded and stored once for
-// all of them.
-constexpr int kAmxBatchGroups = 2;
-
-// totals[r][0..32) += the contributions of `count` (at most kAmxBatchGroups) consecutive groups for rows
-// [first_row, last_row), from the groups' C tiles `batch_sums[b]` (the epilogue of the int8 kinds,
-// docs/numerics.md section 3), group by group:
-// - AmxInt8: P = sum q_x q_w - z_x sum q_w, exact in fp32 (integers below 2^24), times s_x s_w;
-// - AmxInt8Centered: P = the C tiles' sum (q_x - z_x) q_w, times s_x s_w.
-// z_x and s_x of row r's group b are zeros[r * params_stride + b] and row_scales[r * params_stride + b], the
-// group's s_w and sum q_w at weight_scales and weight_sums + b * 32. On AVX-512 the 32 outputs' factors stay
-// in registers over the rows; the scaling runs on the vector units beside the AMX unit's tile products, and
-// it costs about as much as they do, so every instruction of it counts.
-template <typename Kind>
-void add_groups_to_totals(const uint32_t (*batch_sums)[kAmxRowBlock][kAmxPanelColumns], int count, int64_t first_row,
-                          int64_t last_row, const float* zeros, const float* row_scales, int64_t params_stride,
-                          const float* weight_scales, const float* weight_sums, float* totals) {
-#if defined(DYQ_CPU_ISA_AVX512)
-  __m512 scales_low[kAmxBatchGroups], scales_high[kAmxBatchGroups], sums_low[kAmxBatchGroups],
-      sums_high[kAmxBatchGroups];
-  for (int b = 0; b < count; ++b) {
-    scales_low[b] = _mm512_loadu_ps(weight_scales + b * kAmxPanelColumns);
-    scales_high[b] = _mm512_loadu_ps(weight_scales + b * kAmxPanelColumns + 16);
-    if constexpr (!Kind::kCentered) {
-      sums_low[b] = _mm512_loadu_ps(weight_sums + b * kAmxPanelColumns);
-      sums_high[b] = _mm512_loadu_ps(weight_sums + b * kAmxPanelColumns + 16);
-    }
-  }
-  for (int64_t r = first_row; r < last_row; ++r) {
-    float* total = totals + r * kAmxPanelColumns;
-    __m512 total_low = _mm512_loadu_ps(total), total_high = _mm512_loadu_ps(total + 16);
-    for (int b = 0; b < count; ++b) {
-      const __m512 row_scale = _mm512_set1_ps(row_scales[r * params_stride + b]);
-      __m512 low = cvtepi32_ps(_mm512_load_si512(batch_sums[b][r]));
-      __m512 high = cvtepi32_ps(_mm512_load_si512(batch_sums[b][r] + 16));
-      if constexpr (!Kind::kCentered) {
-        const __m512 zero = _mm512_set1_ps(zeros[r * params_stride + b]);
-        low = _mm512_fnmadd_ps(zero, sums_low[b], low);
-        high = _mm512_fnmadd_ps(zero, sums_high[b], high);
-      }
-      total_low = _mm512_fmadd_ps(low, _mm512_mul_ps(row_scale, scales_low[b]), total_low);
-      total_high = _mm512_fmadd_ps(high, _mm512_mul_ps(row_scale, scales_high[b]), total_high);
-    }
-    _mm512_storeu_ps(total, total_low);
-    _mm512_storeu_ps(total + 16, total_high);
-  }
-#else
-  for (int64_t r = first_row; r < last_row; ++r) {
-    float* total = totals + r * kAmxPanelColumns;
-    for (int b = 0; b < count; ++b) {
-      for (int64_t j = 0; j < kAmxPanelColumns; ++j) {
-        // The centered codes' sums are P already: no z_x term.
-        const float partial =
-            static_cast<float>(static_cast<int32_t>(batch_sums[b][r][j])) -
-            (Kind::kCentered ? 0.0f : zeros[r * params_stride + b] * weight_sums[b * kAmxPanelColumns + j]);
-        total[j] += partial * (row_scales[r * params_stride + b] * weight_scales[b * kAmxPanelColumns + j]);
-      }
-    }
-  }
-#endif
-}
-
-// Panels unpacked per pass over the activations: each block of 32 activation rows is run against every
-// panel of the pass while its A tiles are in the L1 cache, instead of coming from L2 once per panel, and
-// each pass reads all the activations once (for 256 rows of k = 4096, 1 MiB of codes: half a core's L2,
-// so that more panels per pass mean fewer reads of them from L3). Two panels' slices (2 x 8 KiB) and a
-// block's A steps (8 KiB) leave room in a 48 KiB L1 for the C tile buffers and the totals being scaled.
-constexpr int64_t kAmxPanelsPerPass = 2;
-
-// Every output its bias (or 0): the product over no column. Returns whether every output is finite.
-template <typename Element>
-bool bias_outputs(const Element* bias, int64_t m, int64_t n, Element* out) {
-  const std::vector<float> zeros(n, 0.0f);
-  FiniteOutputs finite;
-  for (int64_t r = 0; r < m; ++r) finite.note(store_row_from_fp32(zeros.data(), bias, n, out + r * n));
-  return finite.all();
-}
-
-// out = x W^T (+ bias) through the tile loop: AmxInt8Centered at act_bits 2/4, AmxInt8 at 8.
-// Panel is ScalarAmxPanel<Kind> or a packer of the same layout. Threads split the panels of 32 output rows; each
-// configures its own tiles, takes its panels kAmxPanelsPerPass at a time, unpacks each slice of them once,
-// runs the slice against every activation row, and keeps the running totals of their outputs for all rows.
-// Returns whether every output is finite.
-template <typename Tiles, typename Kind, typename Panel, typename Element>
-bool amx_gemm(const Element* x, const uint8_t* qweight, const float* scales, const Element* bias, int64_t m, int64_t n,
-              int64_t k, int group_size, int act_bits, Element* out) {
-  // No column: no slice runs the loop below, whose last slice writes the outputs.
-  if (k == 0) return bias_outputs(bias, m, n, out);
-  const AmxActivations<Kind> a = amx_activations<Kind>(x, m, k, group_size, act_bits);
-  const int64_t step_bytes = a.step_bytes;
-  const int64_t step_columns = a.step_columns();
-  constexpr int64_t kBStride = kAmxPanelColumns * 4;  // bytes of one B row: a dword per output
-  // Everything the loops step by, computed once: a division per group cost as much as a tile product.
-  const int64_t steps_per_group = group_size / step_columns;
-  const int64_t groups_per_slice = kAmxPanelDepth / group_size;
-  const int64_t a_step_bytes = kAmxRowBlock * step_bytes;                                  // a block's step
-  const int64_t b_step_bytes = step_columns / (kAmxQuadColumns / Kind::kStepsPerQuad) * kBStride;  // B tile rows
-  const int64_t panels = (n + kAmxPanelColumns - 1) / kAmxPanelColumns;
-  FiniteOutputs finite;
-  parallel_for(0, panels, 1, [&](int64_t panel_begin, int64_t panel_end) {
-    Tiles tiles;
-    tiles.configure(step_bytes);
-    Panel pass_panels[kAmxPanelsPerPass];
-    // A batch of groups' C tiles (kAmxBatchGroups consecutive groups of a block and panel) goes to one of
-    // two buffers, and the previous batch's are scaled into the totals while this batch's tile products run,
-    // a part of its rows after each group's products are issued: the AMX unit works through those while the
-    // vector units scale, which would otherwise take turns (the scaling costs about as much as the products).
-    alignas(64) uint32_t sums[2][kAmxBatchGroups][kAmxRowBlock][kAmxPanelColumns];
-    struct Pending {
-      int64_t row_begin = -1, rows = 0, group = 0, global_group = 0;  // group: the first, within the slice
-      int count = 0, panel = 0;                                       // groups; panel within the pass
-    } pending;
-    std::vector<float> totals(kAmxPanelsPerPass * a.rows * kAmxPanelColumns);  // [panel][row][32]
-    int64_t pass_begin = panel_begin;
-    // The outputs (plus the bias) of a block of rows from its finished totals.
-    auto write_outputs = [&](int panel, int64_t row_begin, int64_t rows, const float* block_totals) {
-      const int64_t weight_row = (pass_begin + panel) * kAmxPanelColumns;
-      const int64_t columns = std::min(kAmxPanelColumns, n - weight_row);
-      for (int64_t r = 0; r < rows; ++r) {
-        const float* total = block_totals + r * kAmxPanelColumns;
-        finite.note(store_row_from_fp32(total, bias != nullptr ? bias + weight_row : nullptr, columns,
-                                        out + (row_begin + r) * n + weight_row));
-      }
-    };
-    // Adds a batch's contribution to the totals of rows [first_row, last_row) of its block.
-    auto scale_into_totals = [&](const Pending& job, const uint32_t (*batch_sums)[kAmxRowBlock][kAmxPanelColumns],
-                                 int64_t first_row, int64_t last_row) {
-      const Panel& panel = pass_panels[job.panel];
-      float* block_totals = &totals[(job.panel * a.rows + job.row_begin) * kAmxPanelColumns];
-      add_groups_to_totals<Kind>(batch_sums, job.count, first_row, last_row,
-                                 &a.zeros[job.row_begin * a.groups + job.global_group],
-                                 &a.scales[job.row_begin * a.groups + job.global_group], a.groups,
-                                 &panel.scales[job.group * kAmxPanelColumns],
-                                 &panel.weight_sums[job.group * kAmxPanelColumns], block_totals);
-      // The rows' last group: their outputs, written while the totals are in L1, and spread over the last
-      // slice's tile work instead of in one burst at the end.
-      if (job.global_group + job.count == a.groups) {
-        write_outputs(job.panel, job.row_begin + first_row, last_row - first_row,
-                      block_totals + first_row * kAmxPanelColumns);
-      }
-    };
-    for (; pass_begin < panel_end; pass_begin += kAmxPanelsPerPass) {
-      const int pass_count = static_cast<int>(std::min(kAmxPanelsPerPass, panel_end - pass_begin));
-      std::fill(totals.begin(), totals.end(), 0.0f);
-      for (int64_t slice = 0, slice_group = 0; slice < k; slice += kAmxPanelDepth, slice_group += groups_per_slice) {
-        const int64_t depth = std::min(kAmxPanelDepth, k - slice);
-        const int64_t slice_groups = group_count(depth, group_size);
-        for (int i = 0; i < pass_count; ++i) {
-          pass_panels[i].pack(qweight, scales, n, k, group_size, (pass_begin + i) * kAmxPanelColumns, slice, depth);
-        }
-        int buffer = 0;
-        // The block's steps in this slice, one after another (AmxActivations).
-        const uint8_t* a_steps = a.tile(0, slice);
-        const int64_t a_block_bytes = a.slice_steps(slice) * a_step_bytes;
-        for (int64_t row_begin = 0; row_begin < m; row_begin += kAmxRowBlock, a_steps += a_block_bytes) {
-          for (int i = 0; i < pass_count; ++i) {
-            const auto* b_steps = reinterpret_cast<const uint8_t*>(pass_panels[i].steps.data());
-            // A last group cut by k reads steps past `depth`: their activations are 0, so whatever a packer
-            // left there adds nothing.
-            const uint8_t* a_tile = a_steps;
-            const uint8_t* b_tile = b_steps;
-            // One step of the 2 x 2 tiles, each operand loaded just before its first product.
-            // A block of 16 rows or fewer (M <= 16, or the rows' last block) has nothing in its lower A tile:
-            // its C2 and C3 are neither computed nor loaded or stored, half the block's tile work.
-            const bool lower_half = m - row_begin > kAmxTileRows;
-            auto step = [&] {
-              tiles.template load<4>(a_tile, step_bytes);
-              tiles.template load<6>(b_tile, kBStride);
-              Kind::template product<0, 4, 6>(tiles);
-              tiles.template load<7>(b_tile + 64, kBStride);
-              Kind::template product<1, 4, 7>(tiles);
-              if (lower_half) {
-                tiles.template load<5>(a_tile + kAmxTileRows * step_bytes, step_bytes);
-                Kind::template product<2, 5, 6>(tiles);
-                Kind::template product<3, 5, 7>(tiles);
-              }
-              a_tile += a_step_bytes;
-              b_tile += b_step_bytes;
-            };
-            for (int64_t group = 0; group < slice_groups; group += kAmxBatchGroups) {
-              const int count = static_cast<int>(std::min<int64_t>(kAmxBatchGroups, slice_groups - group));
-              for (int b = 0; b < count; ++b) {
-                tiles.template zero<0>();
-                tiles.template zero<1>();
-                if (lower_half) {
-                  tiles.template zero<2>();
-                  tiles.template zero<3>();
-                }
-                for (int64_t s = 0; s < steps_per_group; ++s) step();
-                if (pending.row_begin >= 0) {
-                  scale_into_totals(pending, sums[buffer ^ 1], pending.rows * b / count,
-                                    pending.rows * (b + 1) / count);
-                }
-                uint32_t(*group_sums)[kAmxPanelColumns] = sums[buffer][b];
-                tiles.template store<0>(&group_sums[0][0], kBStride);
-                tiles.template store<1>(&group_sums[0][16], kBStride);
-                if (lower_half) {
-                  tiles.template store<2>(&group_sums[16][0], kBStride);
-                  tiles.template store<3>(&group_sums[16][16], kBStride);
-                }
-              }
-              pending = {row_begin, std::min(kAmxRowBlock, m - row_begin), group, slice_group + group, count, i};
-              buffer ^= 1;
-            }
-          }
-        }
-        // The slice's last batch, before the next slice is packed over its scales.
-        scale_into_totals(pending, sums[buffer ^ 1], 0, pending.rows);
-        pending = {};
-      }
-    }
-    tiles.release();
-  });
-  return finite.all();
-}
-
-// ---- AMX-BF16: the weights as the A operand ---------------------------------------------------------
-//
-// At act_bits 16 the tiles multiply bf16(x) with the dequantized weights bf16(q_w s_w), which no
-// per-group scale follows, so the C tiles accumulate a whole slice onto the running totals. Here the
-// weights are the A tiles and the activations the B tiles, so that a weight panel comes from the packed
-// rows with no transpose: an A tile row is 32 columns of one output row. Which 32 is free, as long as the
-// B tiles pair the same columns of x, and the panels take the order in which the packed bytes hold them:
-// a 64-byte load of a row is 128 columns, 32 words of four nibbles (column 4 w + p in nibble p of word w),
-// and step p of those 128 columns is the 32 columns of nibble p (nibble_order_words). So a step of a row
-// is one word shift and one word lookup in a table of its groups' values (bf16(q s_w) for the 16 codes),
-// where columns in order had cost a byte permute more, and the activations are put in that order once per
-// call, as they are transposed into B tiles. The transposes move to the activations (once per call) and
-// the outputs (once per output); with the weights as B, every call transposed all of them into their
-// tile layout, three times the instructions, and at 16 activation rows that unpacking was most of the
-// call.
-//
-// Tiles: C0..C3 = output rows (0..15, 16..31 of the panel) x activation rows (0..15, 16..31 of the block);
-// A0/A1 = 16 weight rows x 32 columns (64 bytes); B0/B1 = 16 column pairs x 16 activation rows.
 
 constexpr int64_t kAmxBf16StepColumns = 32;                  // columns of one tile product
 constexpr int64_t kAmxBf16TileBytes = 16 * 64;               // one A or B tile
@@ -813,24 +1009,16 @@ struct ScalarAmxBf16Panel {
 // half: at G = 128 a copy of the first (the bit is nibble p + 1's lowest, which does not matter), at G = 64
 // the second group of the load (words 16..31, set by a ternary logic that masks the nibble); at G = 32,
 // four groups, two index bits select among two tables (vpermt2w).
-struct AmxBf16Panel {
+struct AmxBf16Panel : PackByGroupSize<AmxBf16Panel> {
   // As ScalarAmxBf16Panel's.
   alignas(64) uint16_t values[kAmxBf16StepsPerSlice][kAmxPanelColumns][kAmxBf16StepColumns];
 
-  void pack(const uint8_t* qweight, const float* all_scales, int64_t n, int64_t k, int group_size, int64_t row_begin,
-            int64_t col_begin, int64_t depth) {
-    if (group_size == 32) return pack_rows<32>(qweight, all_scales, n, k, row_begin, col_begin, depth);
-    if (group_size == 64) return pack_rows<64>(qweight, all_scales, n, k, row_begin, col_begin, depth);
-    pack_rows<128>(qweight, all_scales, n, k, row_begin, col_begin, depth);
-  }
-
- private:
+  // pack(): PackByGroupSize.
   template <int kGroup>
   void pack_rows(const uint8_t* qweight, const float* all_scales, int64_t n, int64_t k, int64_t row_begin,
                  int64_t col_begin, int64_t depth) {
     alignas(64) static constexpr float kCodes[16] = {0, 1, 2, 3, 4, 5, 6, 7, -8, -7, -6, -5, -4, -3, -2, -1};
     constexpr int kGroupsPerLoad = kAmxBf16LoadColumns / kGroup;
-    constexpr int64_t kPrefetchSlices = 2;
     const __m512 codes = _mm512_load_ps(kCodes);
     const __m512i low_nibble = _mm512_set1_epi16(0x000F);
     // The group of each word of a load, in index bits 4 and 5: w / 16 at G = 64, w / 8 at G = 32.
@@ -848,14 +1036,7 @@ struct AmxBf16Panel {
       }
       const uint8_t* row = qweight + output * row_bytes + col_begin / 2;
       const float* row_scales = all_scales + output * groups;
-      // The row's bytes two slices on: the rows of a pass, read 128 bytes a slice each, are more streams than
-      // the hardware prefetchers follow (without it, 4096 x 4096 at 16 rows took twice as long on the Xeon
-      // with AMX; one slice ahead was about as fast, 2 % to 10 % slower at 64 and 256 rows).
-      if (col_begin + kPrefetchSlices * kAmxPanelDepth < k) {
-        const uint8_t* next = row + kPrefetchSlices * kAmxPanelDepth / 2;
-        _mm_prefetch(reinterpret_cast<const char*>(next), _MM_HINT_T0);
-        _mm_prefetch(reinterpret_cast<const char*>(next + 64), _MM_HINT_T0);
-      }
+      prefetch_row_ahead(row, col_begin, k);
       for (int64_t load = 0; load < loads; ++load) {
         const int64_t column = col_begin + load * kAmxBf16LoadColumns;
         // Past k the load reads nothing (code 0, value 0): the row may end there, and the matrix with it.
@@ -895,34 +1076,9 @@ struct AmxBf16Panel {
 };
 #endif
 
-// outputs[m][j] = totals[j][m] for the 32 output rows j of a panel and the 32 activation rows m of a
-// block ([16, 32) only with `second_half`).
-inline void transpose_block_totals(const float* totals, bool second_half, float* outputs) {
-  for (int64_t m_half = 0; m_half < (second_half ? 2 : 1); ++m_half) {
-    for (int64_t j_half = 0; j_half < 2; ++j_half) {
-      const float* from = totals + j_half * kAmxTileRows * kAmxRowBlock + m_half * kAmxTileRows;
-      float* to = outputs + m_half * kAmxTileRows * kAmxPanelColumns + j_half * kAmxTileRows;
-#if defined(DYQ_CPU_ISA_AVX512)
-      __m512i rows[kAmxTileRows];
-      for (int j = 0; j < kAmxTileRows; ++j) rows[j] = _mm512_loadu_si512(from + j * kAmxRowBlock);
-      transpose_16x16_dwords(rows);
-      for (int r = 0; r < kAmxTileRows; ++r) _mm512_storeu_si512(to + r * kAmxPanelColumns, rows[r]);
-#else
-      for (int j = 0; j < kAmxTileRows; ++j) {
-        for (int r = 0; r < kAmxTileRows; ++r) to[r * kAmxPanelColumns + j] = from[j * kAmxRowBlock + r];
-      }
-#endif
-    }
-  }
-}
-
-// Panels per pass over the activations (AMX-BF16): the totals of a pass's panels stay in L2 while each slice
-// of the activations (16 KiB per block) is read once from memory per pass and from L2 once per panel.
-constexpr int64_t kAmxBf16PanelsPerPass = 8;
-
 // out = x W^T (+ bias) at act_bits 16 through the AMX-BF16 tiles with the weights as A (above). Panel is
 // ScalarAmxBf16Panel or AmxBf16Panel. Threads split the panels of 32 output rows; each takes them
-// kAmxBf16PanelsPerPass at a time, and per slice of columns unpacks each panel of the pass into one buffer
+// kAmxPanelsPerPass at a time, and per slice of columns unpacks each panel of the pass into one buffer
 // and runs it against every block of activation rows, accumulating onto the totals of the pass,
 // [panel][block][output row][activation row], which the C tiles load and store once per slice. The buffer
 // (16 KiB) stays in L1 from its unpacking to its last tile load: with the pass's slices unpacked at once
@@ -936,7 +1092,6 @@ bool amx_bf16_gemm(const Element* x, const uint8_t* qweight, const float* scales
   if (k == 0) return bias_outputs(bias, m, n, out);
   const AmxBf16Activations a = amx_bf16_activations(x, m, k);
   constexpr int64_t kBlockTotals = kAmxPanelColumns * kAmxRowBlock;  // a panel's totals of one block
-  constexpr int64_t kTotalsStride = kAmxRowBlock * 4;                // bytes between two output rows' totals
   const int64_t panels = (n + kAmxPanelColumns - 1) / kAmxPanelColumns;
   constexpr int64_t kWeightStride = kAmxBf16StepColumns * 2;    // bytes between two rows of a panel's step
   constexpr int64_t kLowerRows = kAmxTileRows * kWeightStride;  // a step's rows 16..31
@@ -946,10 +1101,9 @@ bool amx_bf16_gemm(const Element* x, const uint8_t* qweight, const float* scales
     tiles.configure(64);
     std::unique_ptr<Panel> panel(new Panel);
     // As many panels as a pass of this thread takes: a small layer's call allocates no more.
-    const int64_t pass_size = std::min(kAmxBf16PanelsPerPass, panel_end - panel_begin);
+    const int64_t pass_size = std::min(kAmxPanelsPerPass, panel_end - panel_begin);
     // [panel][block][output row 0..31][activation row 0..31]: a C tile's rows 128 bytes apart.
     std::vector<float> totals(pass_size * a.blocks * kBlockTotals);
-    alignas(64) std::array<float, kBlockTotals> outputs;  // a block's outputs: [activation row][output row]
     const auto* weights = reinterpret_cast<const uint8_t*>(&panel->values[0][0][0]);
     for (int64_t pass_begin = panel_begin; pass_begin < panel_end; pass_begin += pass_size) {
       const int pass_count = static_cast<int>(std::min(pass_size, panel_end - pass_begin));
@@ -967,14 +1121,7 @@ bool amx_bf16_gemm(const Element* x, const uint8_t* qweight, const float* scales
             // tile: C1 and C3 are neither computed nor loaded or stored, half the block's tile work.
             const bool second_half = m - block * kAmxRowBlock > kAmxTileRows;
             float* block_totals = &totals[(i * a.blocks + block) * kBlockTotals];
-            uint8_t* totals_bytes = reinterpret_cast<uint8_t*>(block_totals);
-            constexpr int64_t kLowerTotals = kAmxTileRows * kTotalsStride, kRightTotals = kAmxTileRows * 4;
-            tiles.template load<0>(totals_bytes, kTotalsStride);
-            tiles.template load<2>(totals_bytes + kLowerTotals, kTotalsStride);
-            if (second_half) {
-              tiles.template load<1>(totals_bytes + kRightTotals, kTotalsStride);
-              tiles.template load<3>(totals_bytes + kLowerTotals + kRightTotals, kTotalsStride);
-            }
+            move_block_tiles<false>(tiles, block_totals, second_half);
             const uint8_t* b_tile = a.tile(block, first_step, 0);
             for (int64_t s = 0; s < slice_steps; ++s, b_tile += 2 * kAmxBf16TileBytes) {
               const uint8_t* a_tile = weights + s * kAmxPanelColumns * kWeightStride;
@@ -989,22 +1136,9 @@ bool amx_bf16_gemm(const Element* x, const uint8_t* qweight, const float* scales
                 tiles.template dpbf16ps<3, 5, 7>();
               }
             }
-            tiles.template store<0>(totals_bytes, kTotalsStride);
-            tiles.template store<2>(totals_bytes + kLowerTotals, kTotalsStride);
-            if (second_half) {
-              tiles.template store<1>(totals_bytes + kRightTotals, kTotalsStride);
-              tiles.template store<3>(totals_bytes + kLowerTotals + kRightTotals, kTotalsStride);
-            }
+            move_block_tiles<true>(tiles, block_totals, second_half);
             if (last_slice) {
-              // The block's outputs (plus the bias): its totals transposed to activation rows.
-              const int64_t columns = std::min(kAmxPanelColumns, n - weight_row);
-              const int64_t row_begin = block * kAmxRowBlock, block_rows = std::min(kAmxRowBlock, m - row_begin);
-              transpose_block_totals(block_totals, second_half, outputs.data());
-              for (int64_t r = 0; r < block_rows; ++r) {
-                finite.note(store_row_from_fp32(&outputs[r * kAmxPanelColumns],
-                                                bias != nullptr ? bias + weight_row : nullptr, columns,
-                                                out + (row_begin + r) * n + weight_row));
-              }
+              finite.note(write_block_outputs(block_totals, bias, m, n, block * kAmxRowBlock, weight_row, out));
             }
           }
         }

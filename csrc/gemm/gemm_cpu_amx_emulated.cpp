@@ -13,11 +13,11 @@ void amx_emulated_gemm(const float* x, const uint8_t* qweight, const float* scal
   if (act_bits == 16) {
     amx_bf16_gemm<EmulatedTiles, ScalarAmxBf16Panel>(x, qweight, scales, bias, m, n, k, group_size, out);
   } else if (act_bits == 2 || act_bits == 4) {
-    amx_gemm<EmulatedTiles, AmxInt8Centered, ScalarAmxPanel<AmxInt8Centered>>(x, qweight, scales, bias, m, n, k,
-                                                                              group_size, act_bits, out);
+    amx_int8_gemm<EmulatedTiles, AmxInt8Centered, ScalarAmxInt8Panel<AmxInt8Centered>>(x, qweight, scales, bias, m,
+                                                                                      n, k, group_size, act_bits, out);
   } else if (act_bits == 8) {
-    amx_gemm<EmulatedTiles, AmxInt8, ScalarAmxPanel<AmxInt8>>(x, qweight, scales, bias, m, n, k, group_size, act_bits,
-                                                              out);
+    amx_int8_gemm<EmulatedTiles, AmxInt8, ScalarAmxInt8Panel<AmxInt8>>(x, qweight, scales, bias, m, n, k, group_size,
+                                                                       act_bits, out);
   } else {
     throw std::invalid_argument("amx_emulated_gemm: act_bits must be 2, 4, 8 or 16");
   }

@@ -1130,14 +1130,6 @@ constexpr int64_t kAmxMinRows = 16;
 constexpr int64_t kAmxFallbackMinRows = 4;
 inline int64_t amx_min_rows(int act_bits) { return act_bits == kFallbackBits ? kAmxFallbackMinRows : kAmxMinRows; }
 static_assert(kBlockColumns == kAmxBf16LoadColumns, "the bf16 row kernels' blocks are nibble_order_words' loads");
-static_assert(kPanelColumns == kAmxPanelColumns && kPanelDepth == kAmxPanelDepth && kQuadColumns == kAmxQuadColumns,
-              "the AMX tile loop reads the panels' layout");
-// The VNNI panel without the sums of q_w, which the centered codes of act_bits 2 and 4 do not need.
-struct VnniPanelUnsummed : VnniPanel {
-  static constexpr bool kWeightSums = false;
-};
-
-static_assert(VnniPanel::kSteps == AmxInt8::kStepsPerQuad, "the AMX tile loop reads the panels' layout");
 #endif
 
 // out = x W^T (+ bias) at kBits; returns whether every output is finite.
@@ -1148,11 +1140,12 @@ bool gemm_typed(const Element* x, const uint8_t* qweight, const float* scales, c
 #if defined(DYQ_AVX512_HAS_AMX)
     if (m >= amx_min_rows(kBits)) {
       if constexpr (kBits <= 4) {
-        return amx_gemm<NativeTiles, AmxInt8Centered, WeightPanel<VnniPanelUnsummed>>(x, qweight, scales, bias, m,
-                                                                                     n, k, group_size, kBits, out);
+        return amx_int8_gemm<NativeTiles, AmxInt8Centered, AmxInt8Panel<AmxInt8Centered>>(x, qweight, scales, bias,
+                                                                                          m, n, k, group_size, kBits,
+                                                                                          out);
       } else {
-        return amx_gemm<NativeTiles, AmxInt8, WeightPanel<VnniPanel>>(x, qweight, scales, bias, m, n, k, group_size,
-                                                                      kBits, out);
+        return amx_int8_gemm<NativeTiles, AmxInt8, AmxInt8Panel<AmxInt8>>(x, qweight, scales, bias, m, n, k, group_size,
+                                                                          kBits, out);
       }
     }
 #endif
