@@ -351,11 +351,17 @@ inline int64_t amx_int8_column(int64_t i, int64_t load_columns) {
 // order: u8 q_x, or s8 q_x - z_x for the centered kind); slice by slice, within a slice block by block,
 // within a block step by step, so that a block's pass over a slice reads one run. Columns past k and the
 // rows past m of the last block are 0, and so are their z_x and s_x. z_x and s_x per block and group, the
-// block's 32 rows in a row, as the epilogue loads them.
+// block's 32 rows in a row, as the epilogue loads them. At act_bits 8 on 16 rows or fewer (zero_tiles), also
+// per group a B tile row of z_x: dword r holds z_x of row r in each of its bytes (zero_row).
 struct AmxInt8Activations {
   int64_t blocks = 0, groups = 0, step_bytes = 0, steps = 0;  // steps over the columns padded to whole groups
+  bool zero_tiles = false;
   std::unique_ptr<uint8_t[]> bytes;
   AlignedVector<float> zeros, scales;  // [block][group][32]
+  AlignedVector<uint8_t> zero_rows;    // [group][64], with zero_tiles
+
+  // A B tile of z_x (group g's zero_row, loaded with stride 0 into every tile row).
+  const uint8_t* zero_row(int64_t group) const { return zero_rows.data() + group * 64; }
 
   int64_t tile_bytes() const { return step_bytes / 4 * 64; }
   // The B tile of rows [16 half, 16 half + 16) of `block` at `step`; the block's next step follows its
@@ -383,6 +389,8 @@ AmxInt8Activations amx_int8_activations(const Element* x, int64_t m, int64_t k, 
   a.bytes.reset(new uint8_t[a.blocks * a.steps * 2 * a.tile_bytes()]);
   a.zeros.assign(a.blocks * a.groups * kAmxRowBlock, 0.0f);
   a.scales.assign(a.blocks * a.groups * kAmxRowBlock, 0.0f);
+  a.zero_tiles = !Kind::kCentered && m <= kAmxTileRows;
+  if (a.zero_tiles) a.zero_rows.assign(a.groups * 64, 0);
   const int64_t load_columns = amx_int8_load_columns(group_size);
   const int64_t quads = a.step_bytes / 4;  // B tile rows
   // The bytes of a load at positions [64 i, 64 i + 64) of its order, as indices into the load's 128 bytes.
@@ -419,6 +427,7 @@ AmxInt8Activations amx_int8_activations(const Element* x, int64_t m, int64_t k, 
             for (int64_t c = 0; c < columns; ++c) row_codes[g * group_size + c] -= static_cast<uint8_t>(p.zero);
           }
           a.zeros[(block * a.groups + g) * kAmxRowBlock + lane_offset + r] = static_cast<float>(p.zero);
+          if (a.zero_tiles) std::memset(&a.zero_rows[g * 64 + 4 * r], static_cast<int>(p.zero), 4);
           a.scales[(block * a.groups + g) * kAmxRowBlock + lane_offset + r] = p.scale;
         }
       }
@@ -461,7 +470,8 @@ struct AmxInt8PanelLayout {
   static constexpr int64_t kGroups = kAmxPanelDepth / 32;  // at the smallest group size
   alignas(64) int8_t codes[kAmxPanelDepth * kAmxPanelColumns];
   alignas(64) float scales[kGroups * kAmxPanelColumns];       // [group][32]
-  alignas(64) float weight_sums[kGroups * kAmxPanelColumns];  // [group][32], AmxInt8
+  alignas(64) float weight_sums[kGroups * kAmxPanelColumns];  // [group][32], AmxInt8 unless zero tiles replace them
+  bool with_weight_sums = Kind::kWeightSums;
 
   // The A tile of output rows [16 half, 16 half + 16) at `step` (of the slice); its rows are step_bytes apart.
   const uint8_t* tile(int64_t step, int64_t step_bytes, int half) const {
@@ -488,7 +498,7 @@ struct ScalarAmxInt8Panel : AmxInt8PanelLayout<Kind> {
       }
       for (int64_t g = 0; g < panel_groups; ++g) {
         this->scales[g * kAmxPanelColumns + j] = output < n ? all_scales[output * groups + first_group + g] : 0.0f;
-        if constexpr (Kind::kWeightSums) {
+        if (this->with_weight_sums) {
           const int64_t first = col_begin + g * group_size, last = output < n ? std::min(first + group_size, k) : first;
           float sum = 0.0f;
           for (int64_t c = first; c < last; ++c) sum += static_cast<float>(weight_code(row, c));
@@ -577,13 +587,13 @@ struct AmxInt8Panel : AmxInt8PanelLayout<Kind>, PackByGroupSize<AmxInt8Panel<Kin
                                extracti64x4<1>(second));
           }
         }
-        if constexpr (Kind::kWeightSums) {
+        if (Kind::kWeightSums && this->with_weight_sums) {
           // Per quadword the sum over 8 bytes of (low + high codes) + 128 (below 256): 16 columns of one group.
           row_sums[load][j] = _mm512_sad_epu8(_mm512_xor_si512(_mm512_add_epi8(low, high), offset), _mm512_setzero_si512());
         }
       }
     }
-    if constexpr (Kind::kWeightSums) {
+    if (Kind::kWeightSums && this->with_weight_sums) {
       for (int64_t load = 0; load < loads; ++load) {
         for (int64_t j = 0; j < kAmxPanelColumns; j += 8) {
           add_group_sums<kGroupsPerLoad>(row_sums[load] + j, load * kGroupsPerLoad, panel_groups, j);
@@ -653,27 +663,33 @@ struct AmxInt8Panel : AmxInt8PanelLayout<Kind>, PackByGroupSize<AmxInt8Panel<Kin
 // panel and a block's activation rows, from the group's C tiles `sums` ([output row][activation row]; the
 // epilogue of the int8 kinds, docs/numerics.md section 3):
 // - AmxInt8: P = sum q_x q_w - z_x sum q_w, exact in fp32 (integers below 2^24), times s_x s_w;
+// - AmxInt8 with zero tiles (kZeroTiles: 16 rows or fewer): the C tiles of the activation rows 16..31 hold
+//   z_x sum q_w itself (the zero rows' products), and P is the difference of the two integers;
 // - AmxInt8Centered: P = the C tiles' sum (q_x - z_x) q_w, times s_x s_w.
 // zeros and row_scales: z_x and s_x of the block's 32 rows; weight_scales and weight_sums: s_w and sum q_w of
 // the 32 output rows. On AVX-512 the rows' factors stay in registers over the outputs; the scaling runs on
 // the vector units beside the AMX unit's tile products and costs about as much, so every instruction counts.
-template <typename Kind, bool kSecondHalf>
+template <typename Kind, bool kSecondHalf, bool kZeroTiles = false>
 void add_group_to_totals(const uint32_t (*sums)[kAmxRowBlock], const float* zeros, const float* row_scales,
                          const float* weight_scales, const float* weight_sums, float* totals) {
+  static_assert(!(kZeroTiles && (kSecondHalf || Kind::kCentered)), "zero tiles take the second half's C tiles");
   constexpr int64_t kRows = kSecondHalf ? kAmxRowBlock : kAmxTileRows;
+  constexpr bool kWeightSumsTerm = !Kind::kCentered && !kZeroTiles;
 #if defined(DYQ_CPU_ISA_AVX512)
   constexpr int kHalves = kRows / 16;
   __m512 row_scale[kHalves], zero[kHalves];
   for (int h = 0; h < kHalves; ++h) {
     row_scale[h] = _mm512_loadu_ps(row_scales + 16 * h);
-    if constexpr (!Kind::kCentered) zero[h] = _mm512_loadu_ps(zeros + 16 * h);
+    if constexpr (kWeightSumsTerm) zero[h] = _mm512_loadu_ps(zeros + 16 * h);
   }
   for (int64_t j = 0; j < kAmxPanelColumns; ++j) {
     const __m512 weight_scale = _mm512_set1_ps(weight_scales[j]);
     float* total = totals + j * kAmxRowBlock;
     for (int h = 0; h < kHalves; ++h) {
-      __m512 partial = cvtepi32_ps(_mm512_load_si512(sums[j] + 16 * h));
-      if constexpr (!Kind::kCentered) partial = _mm512_fnmadd_ps(zero[h], _mm512_set1_ps(weight_sums[j]), partial);
+      __m512i sum = _mm512_load_si512(sums[j] + 16 * h);
+      if constexpr (kZeroTiles) sum = _mm512_sub_epi32(sum, _mm512_load_si512(sums[j] + 16));
+      __m512 partial = cvtepi32_ps(sum);
+      if constexpr (kWeightSumsTerm) partial = _mm512_fnmadd_ps(zero[h], _mm512_set1_ps(weight_sums[j]), partial);
       _mm512_store_ps(total + 16 * h,
                       _mm512_fmadd_ps(partial, _mm512_mul_ps(row_scale[h], weight_scale), _mm512_load_ps(total + 16 * h)));
     }
@@ -682,8 +698,8 @@ void add_group_to_totals(const uint32_t (*sums)[kAmxRowBlock], const float* zero
   for (int64_t j = 0; j < kAmxPanelColumns; ++j) {
     for (int64_t r = 0; r < kRows; ++r) {
       // The centered codes' sums are P already: no z_x term.
-      const float partial = static_cast<float>(static_cast<int32_t>(sums[j][r])) -
-                            (Kind::kCentered ? 0.0f : zeros[r] * weight_sums[j]);
+      const int32_t sum = static_cast<int32_t>(sums[j][r]) - (kZeroTiles ? static_cast<int32_t>(sums[j][16 + r]) : 0);
+      const float partial = static_cast<float>(sum) - (kWeightSumsTerm ? zeros[r] * weight_sums[j] : 0.0f);
       totals[j * kAmxRowBlock + r] += partial * (row_scales[r] * weight_scales[j]);
     }
   }
@@ -740,6 +756,11 @@ bool amx_int8_gemm(const Element* x, const uint8_t* qweight, const float* scales
       if (second_half) {
         add_group_to_totals<Kind, true>(sums[sums_buffer ^ 1], zeros, row_scales, weight_scales, weight_sums,
                                         job.block_totals);
+      } else if (a.zero_tiles) {
+        if constexpr (!Kind::kCentered) {
+          add_group_to_totals<Kind, false, true>(sums[sums_buffer ^ 1], zeros, row_scales, weight_scales,
+                                                 weight_sums, job.block_totals);
+        }
       } else {
         add_group_to_totals<Kind, false>(sums[sums_buffer ^ 1], zeros, row_scales, weight_scales, weight_sums,
                                          job.block_totals);
@@ -761,35 +782,39 @@ bool amx_int8_gemm(const Element* x, const uint8_t* qweight, const float* scales
           const int64_t weight_row = (pass_begin + i) * kAmxPanelColumns;
           Panel& panel = panel_buffers[panel_buffer];
           panel_buffer ^= 1;
+          panel.with_weight_sums = Kind::kWeightSums && !a.zero_tiles;
           panel.pack(qweight, scales, n, k, group_size, weight_row, slice, depth);
           for (int64_t block = 0; block < a.blocks; ++block) {
             // A block of 16 rows or fewer (M <= 16, or the rows' last block) has nothing in its second B
-            // tile: C1 and C3 are neither computed nor loaded or stored, half the block's tile work.
+            // tile: C1 and C3 are neither computed nor loaded or stored, half the block's tile work, or with
+            // zero tiles they take the products of the weights with the zero row.
             const bool second_half = m - block * kAmxRowBlock > kAmxTileRows;
+            const bool upper_tiles = second_half || a.zero_tiles;  // C1 and C3 in use
             float* block_totals = &totals[(i * a.blocks + block) * kBlockTotals];
             const uint8_t* b_tile = a.tile(block, first_step, 0);
             for (int64_t group = 0; group < slice_groups; ++group) {
               tiles.template zero<0>();
               tiles.template zero<2>();
-              if (second_half) {
+              if (upper_tiles) {
                 tiles.template zero<1>();
                 tiles.template zero<3>();
               }
+              if (a.zero_tiles) tiles.template load<7>(a.zero_row(slice_group + group), 0);
               for (int64_t s = group * steps_per_group; s < (group + 1) * steps_per_group; ++s) {
                 tiles.template load<6>(b_tile, 64);
                 tiles.template load<4>(panel.tile(s, step_bytes, 0), step_bytes);
                 Kind::template product<0, 4, 6>(tiles);
                 tiles.template load<5>(panel.tile(s, step_bytes, 1), step_bytes);
                 Kind::template product<2, 5, 6>(tiles);
-                if (second_half) {
-                  tiles.template load<7>(b_tile + b_tile_bytes, 64);
+                if (upper_tiles) {
+                  if (second_half) tiles.template load<7>(b_tile + b_tile_bytes, 64);
                   Kind::template product<1, 4, 7>(tiles);
                   Kind::template product<3, 5, 7>(tiles);
                 }
                 b_tile += 2 * b_tile_bytes;
               }
               scale_pending();
-              move_block_tiles<true>(tiles, sums[sums_buffer], second_half);
+              move_block_tiles<true>(tiles, sums[sums_buffer], upper_tiles);
               pending = {&panel, group, slice_group + group, block, weight_row, block_totals};
               sums_buffer ^= 1;
             }
