@@ -422,9 +422,13 @@ AmxInt8Activations amx_int8_activations(const Element* x, int64_t m, int64_t k, 
         for (int64_t g = 0; g < a.groups; ++g) {
           const ActivationGroupParams& p = params[r * a.groups + g];
           if constexpr (Kind::kCentered) {
-            // q_x - z_x as s8 bytes (the columns past k stay 0).
+            // q_x - z_x as s8 bytes (the columns past k stay 0). z_x in a local: read through the reference
+            // at every byte stored (a byte store may alias it), the loop was not vectorized, and W4A4 took
+            // 1.5x W4A8's time on the policy's 256 x 768 layer at 256 rows.
             const int64_t columns = group_columns(k, group_size, g);
-            for (int64_t c = 0; c < columns; ++c) row_codes[g * group_size + c] -= static_cast<uint8_t>(p.zero);
+            const auto zero = static_cast<uint8_t>(p.zero);
+            uint8_t* group_codes = row_codes + g * group_size;
+            for (int64_t c = 0; c < columns; ++c) group_codes[c] = static_cast<uint8_t>(group_codes[c] - zero);
           }
           a.zeros[(block * a.groups + g) * kAmxRowBlock + lane_offset + r] = static_cast<float>(p.zero);
           if (a.zero_tiles) std::memset(&a.zero_rows[g * 64 + 4 * r], static_cast<int>(p.zero), 4);

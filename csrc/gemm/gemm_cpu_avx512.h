@@ -1116,8 +1116,7 @@ inline bool use_dequantized_panel(int64_t m, int64_t k) {
 #endif
 
 #if defined(DYQ_AVX512_HAS_AMX)
-// From this many activation rows on, the AMX tiles (gemm/gemm_cpu_amx.h; the int8 kinds unpack the weights
-// with the panel packers above). The tile loop's cost hardly depends on the rows up to 16 (its work on every
+// From this many activation rows on, the AMX tiles (gemm/gemm_cpu_amx.h). The tile loop's cost hardly depends on the rows up to 16 (its work on every
 // weight dominates). W4A16 goes to it from 4 rows: on the Intel Xeon with AMX (Emerald Rapids, hot weights,
 // C++ loop, the two alternating in one process) its tiles took 1.8 to 2.2 ms on 4096 x 4096 from 1 to 6
 // rows on one thread (3.0 to 3.9 ms on 11008 x 4096 and 4096 x 11008), where the bf16 dot products of the
