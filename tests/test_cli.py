@@ -8,6 +8,7 @@ import sys
 import pytest
 
 from dyq.apps import cli, usage
+from dyq.control.dispatch import DispatchConfig
 
 
 def leaf_commands():
@@ -119,6 +120,19 @@ def test_missing_optional_dependency_is_one_line(tmp_path, capsys, monkeypatch):
     code, err = run(["dispatch", "replay", str(trajectory), "--out", str(tmp_path / "plot.png")], capsys)
     assert_one_line_error(code, err, "replay --out")
     assert "matplotlib" in err
+
+
+def test_a_damaged_file_found_deep_in_a_command_is_one_line(tmp_path, monkeypatch, capsys):
+    # A FileFormatError names the user's file wherever it is raised: the checkpoint, dispatch config, results
+    # and episode files that eval, demo, profile and calibrate read through library code.
+    from dyq.apps import dispatch_cli
+
+    config = tmp_path / "dispatch.json"
+    config.write_text('{"K": "three"')
+    monkeypatch.setattr(dispatch_cli, "main", lambda args: DispatchConfig.load(config))
+    code, err = run(["dispatch", "config", str(tmp_path / "cfg.json")], capsys)
+    assert_one_line_error(code, err, "dispatch config")
+    assert "dispatch.json" in err
 
 
 def test_a_bug_keeps_its_traceback(monkeypatch):

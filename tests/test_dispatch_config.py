@@ -7,6 +7,7 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from dyq.control.dispatch import DispatchConfig, ProxyWeight, paper_ladder, paper_proxies
+from dyq.errors import FileFormatError
 
 
 def test_defaults_follow_the_paper_where_it_gives_values():
@@ -44,10 +45,11 @@ def test_a_field_given_twice_is_rejected():
         DispatchConfig.from_dict({"K": 3, "delay_window": 4})
 
 
-def test_invalid_json_file_is_rejected(tmp_path):
+@pytest.mark.parametrize("content", [b"{not json", b"\x1f\x8b\x08 a gzip file"])
+def test_invalid_json_file_is_rejected(tmp_path, content):
     path = tmp_path / "bad.json"
-    path.write_text("{not json")
-    with pytest.raises(ValueError, match="not valid JSON"):
+    path.write_bytes(content)
+    with pytest.raises(FileFormatError, match="not valid JSON"):
         DispatchConfig.load(path)
 
 
@@ -100,12 +102,14 @@ def test_bad_configuration_is_rejected_naming_the_argument(changes, error, messa
 
 @pytest.mark.parametrize("changes, error, message", BAD_VALUES)
 def test_bad_configuration_file_is_rejected_too(tmp_path, changes, error, message):
+    # In a file, every bad value is the file's fault: a FileFormatError naming it, whatever from_dict raises.
     data = {**DispatchConfig().to_dict(), **changes}
     data = {k: list(v) if isinstance(v, tuple) else v for k, v in data.items()}
     path = tmp_path / "cfg.json"
     path.write_text(json.dumps(data))  # NaN and Infinity are written as JSON extensions
-    with pytest.raises(error, match=message):
+    with pytest.raises(FileFormatError, match=message) as raised:
         DispatchConfig.load(path)
+    assert str(path) in str(raised.value)
 
 
 def test_min_length_covers_both_slices():

@@ -167,6 +167,25 @@ def test_results_merge_keeps_other_rows(tmp_path, monkeypatch):
     assert "| w4a8 |" in evaluate.markdown_table(data)
 
 
+@pytest.mark.parametrize("content", ["{truncated", "[1, 2]", '{"tasks": 3}'])
+def test_a_results_file_dyq_did_not_write_is_refused_naming_it(tmp_path, content):
+    out = tmp_path / "closed_loop.json"
+    out.write_text(content)
+    row = evaluate.summarize([{"seed": 0, "success": True, "steps": 1, "bits": [16], "latency_ms": [1.0],
+                               "prefill_kernel_bits": [{}], "decode_kernel_bits": [{}]}])
+    with pytest.raises(dyq.FileFormatError, match="closed_loop.json"):
+        evaluate.update_results(out, TASK, [0], "ckpt", "abc", {"fp32": row})
+    assert out.read_text() == content  # left as it was
+
+
+@pytest.mark.parametrize("content", [b"not gzip at all", b"\x1f\x8b\x08\x00truncated"])
+def test_a_damaged_episode_record_is_refused_naming_it(tmp_path, content):
+    path = tmp_path / "episode.json.gz"
+    path.write_bytes(content)
+    with pytest.raises(dyq.FileFormatError, match="episode.json.gz"):
+        evaluate._read_episode(path)
+
+
 def test_a_row_on_fewer_seeds_keeps_the_seeds_of_the_rows_on_more(tmp_path):
     out = tmp_path / "closed_loop.json"
     row = evaluate.summarize([{"seed": 0, "success": True, "steps": 1, "bits": [16], "latency_ms": [1.0],

@@ -1,4 +1,6 @@
 """The simulation policy: action tokens, prompts, KV-cached greedy decoding, checkpoints and training."""
+import json
+
 import numpy as np
 import pytest
 import torch
@@ -6,6 +8,7 @@ import torch
 pytest.importorskip("transformers")
 pytest.importorskip("safetensors")
 
+from dyq.errors import FileFormatError  # noqa: E402
 from dyq.sim.policy import PolicyConfig, TokenPolicy  # noqa: E402
 from dyq.sim.tokens import BINS, BinTokenizer, Vocabulary  # noqa: E402
 
@@ -108,6 +111,25 @@ def test_checkpoint_round_trip_gives_identical_actions(tmp_path):
 def test_loading_a_missing_checkpoint_names_the_file(tmp_path):
     with pytest.raises(FileNotFoundError, match="policy.json"):
         TokenPolicy.load(tmp_path)
+
+
+@pytest.mark.parametrize("damage", ["config not json", "config of unknown keys", "config of another policy",
+                                    "weights not safetensors"])
+def test_a_damaged_checkpoint_is_a_file_format_error_naming_it(tmp_path, damage):
+    policy, _, _ = make_policy()
+    checkpoint = policy.save(tmp_path / "ckpt")
+    config_file = checkpoint / "policy.json"
+    config = json.loads(config_file.read_text())
+    if damage == "config not json":
+        config_file.write_text(config_file.read_text()[:40])
+    elif damage == "config of unknown keys":
+        config_file.write_text(json.dumps({**config, "no_such_key": 1}))
+    elif damage == "config of another policy":  # wider layers than the saved weights
+        config_file.write_text(json.dumps({**config, "hidden_size": 2 * config["hidden_size"]}))
+    else:
+        (checkpoint / "model.safetensors").write_bytes(b"\x08\x00\x00\x00\x00\x00\x00\x00{}garbage")
+    with pytest.raises(FileFormatError, match="ckpt"):
+        TokenPolicy.load(checkpoint)
 
 
 def test_widths_must_be_multiples_of_the_group_size():

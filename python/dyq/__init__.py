@@ -19,6 +19,7 @@ from .core.linear import DyQLinear
 from .core.precision import FALLBACK_BITS, GROUP_SIZES, VALID_BITS
 from .core.quantize import QuantizationReport, bind_flag, model_flag, quantize_model, set_precision
 from .core.serialization import load_quantized, save_quantized
+from .errors import FileFormatError
 
 __version__ = "0.1.0"
 
@@ -44,6 +45,7 @@ __all__ = [
     "force_precision",
     "DyQLinear",
     "FALLBACK_BITS",
+    "FileFormatError",
     "GROUP_SIZES",
     "ProxyWeight",
     "PrecisionFlag",

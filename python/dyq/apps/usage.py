@@ -23,6 +23,8 @@ from pathlib import Path
 from types import ModuleType
 from typing import Callable, Sequence
 
+from ..errors import FileFormatError
+
 # Every type here carries invalid_examples(folder) -> command-line values it rejects (files made in
 # `folder`), so that tests/test_cli.py can try each one on every argument of every command.
 
@@ -224,7 +226,7 @@ def _paths_given(args: argparse.Namespace | None) -> set[str]:
 def user_error_message(error: BaseException, args: argparse.Namespace | None, command: ModuleType | None) -> str | None:
     """The one-line report of ``error`` raised by ``command.main(args)`` (or by importing the command, with
     args and command None) if it is the user's mistake, else None (a bug, whose traceback must show)."""
-    if isinstance(error, UsageError):
+    if isinstance(error, (UsageError, FileFormatError)):
         return str(error)
     if isinstance(error, OSError) and error.filename is not None and os.fspath(error.filename) in _paths_given(args):
         return f"{error.filename}: {error.strerror or error}"

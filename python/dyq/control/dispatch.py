@@ -34,6 +34,7 @@ from typing import Any
 import numpy as np
 
 from ..core.precision import FALLBACK_BITS, QUANTIZED_BITS, check_bits
+from ..errors import FileFormatError
 
 HYSTERESIS_MODES = ("window", "counter", "none")
 INPUT_KINDS = ("action", "pose")
@@ -350,9 +351,12 @@ class DispatchConfig:
         with open(path, encoding="utf-8") as f:
             try:
                 data = json.load(f)
-            except json.JSONDecodeError as err:
-                raise ValueError(f"config file {os.fspath(path)!r} is not valid JSON: {err}") from None
-        return cls.from_dict(data)
+            except (json.JSONDecodeError, UnicodeDecodeError) as err:
+                raise FileFormatError(f"config file {os.fspath(path)!r} is not valid JSON: {err}") from None
+        try:
+            return cls.from_dict(data)
+        except (ValueError, TypeError) as err:
+            raise FileFormatError(f"config file {os.fspath(path)!r}: {err}") from None
 
 
 class RollingPercentile:

@@ -27,6 +27,7 @@ from typing import Any
 import numpy as np
 
 from .. import results as results_io
+from ..errors import FileFormatError
 from ..analysis.stats import paired_comparison, wilson_interval
 from . import envs
 
@@ -122,8 +123,12 @@ def config_cache_name(run: "RunConfig", checkpoint: str | os.PathLike) -> str:
 
 
 def _read_episode(path: Path) -> dict[str, Any]:
-    with gzip.open(path, "rt") as f:
-        return json.load(f)
+    try:
+        with gzip.open(path, "rt") as f:
+            return json.load(f)
+    except (OSError, EOFError, ValueError) as error:  # gzip's BadGzipFile is an OSError; JSON errors ValueErrors
+        raise FileFormatError(f"episode record {path} is not one written by dyq eval ({error}): delete it to run "
+                              f"the episode again") from None
 
 
 def _write_episode(path: Path, episode: dict[str, Any]) -> None:
@@ -286,7 +291,13 @@ def update_results(out: Path, task: str, seeds: list[int], checkpoint: str, dige
     """Merges one task's rows into the results file (where write_json puts it); returns the whole file's
     content."""
     out = results_io.results_path(out)
-    data = json.loads(out.read_text()) if out.is_file() else {"tasks": {}}
+    try:
+        data = json.loads(out.read_text()) if out.is_file() else {"tasks": {}}
+        if not isinstance(data, dict) or not isinstance(data.get("tasks"), dict):
+            raise ValueError("no tasks")
+    except ValueError as error:
+        raise FileFormatError(f"results file {out} is not one written by dyq eval ({error}): move it away to start "
+                              f"a new one") from None
     entry = data["tasks"].setdefault(task, {"configs": {}})
     if entry.get("checkpoint_digest") not in (None, digest):
         entry["configs"] = {}  # a retrained policy: the old rows describe another policy

@@ -28,6 +28,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from ..errors import FileFormatError
 from .tokens import ACTION_DIMS, BINS, BinTokenizer, Vocabulary
 
 CHECKPOINT_FILE = "model.safetensors"
@@ -250,14 +251,25 @@ class TokenPolicy:
         for name in (CONFIG_FILE, CHECKPOINT_FILE):
             if not (directory / name).is_file():
                 raise FileNotFoundError(f"policy checkpoint {directory} has no {name}")
-        config = PolicyConfig.from_dict(json.loads((directory / CONFIG_FILE).read_text()))
+        try:
+            config = PolicyConfig.from_dict(json.loads((directory / CONFIG_FILE).read_text()))
+        except (ValueError, TypeError) as error:  # not JSON, or not a policy's config
+            raise FileFormatError(f"policy checkpoint {directory}: {CONFIG_FILE} is not a policy config written "
+                                  f"by dyq train: {error}") from None
         policy = cls(config)
-        state = {k: v.float() for k, v in load_file(str(directory / CHECKPOINT_FILE)).items()}
-        missing, unexpected = policy.model.load_state_dict(state, strict=False)
+        try:
+            state = {k: v.float() for k, v in load_file(str(directory / CHECKPOINT_FILE)).items()}
+        except Exception as error:  # safetensors raises its own error types for a truncated or foreign file
+            raise FileFormatError(f"policy checkpoint {directory}: {CHECKPOINT_FILE} is not a safetensors file "
+                                  f"of tensors: {error}") from None
+        try:
+            missing, unexpected = policy.model.load_state_dict(state, strict=False)
+        except RuntimeError as error:  # a tensor of another shape
+            raise FileFormatError(f"checkpoint {directory} does not match its config: {error}") from None
         # lm_head and embeddings are separate parameters (untied); rotary buffers are not saved.
         missing = [k for k in missing if "rotary_emb" not in k]
         if missing or unexpected:
-            raise ValueError(f"checkpoint {directory} does not match its config: missing {missing}, "
-                             f"unexpected {unexpected}")
+            raise FileFormatError(f"checkpoint {directory} does not match its config: missing {missing}, "
+                                  f"unexpected {unexpected}")
         policy.model.eval()
         return policy
