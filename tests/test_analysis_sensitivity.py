@@ -56,6 +56,8 @@ def test_sensitivity_rejects_bad_input(error, deviation, match):
 
 @pytest.mark.parametrize("field, value, error, match", [
     ("act_bits", 16, ValueError, "act_bits must be one of"),
+    ("act_bits", 4.0, TypeError, "act_bits must be an int"),
+    ("act_bits", True, TypeError, "act_bits must be an int"),
     ("action_error", -1.0, ValueError, "action_error must be >= 0"),
     ("terminal_deviation", math.inf, ValueError, "terminal_deviation must be finite"),
     ("success", 1, TypeError, "success must be a bool"),

@@ -55,6 +55,10 @@ class ProfiledStep:
     def __post_init__(self):
         _checks.integer(self.episode, "episode", 0)
         _checks.integer(self.t, "t", 0)
+        # An int: 4.0 and True compare equal to widths, but no layer runs at them.
+        if isinstance(self.act_bits, (bool, np.bool_)) or not isinstance(self.act_bits, (int, np.integer)):
+            raise TypeError(f"act_bits must be an int in {PROFILED_BITS}, got {type(self.act_bits).__name__} "
+                            f"{self.act_bits!r}")
         if self.act_bits not in PROFILED_BITS:
             raise ValueError(f"act_bits must be one of {PROFILED_BITS}, got {self.act_bits!r}")
         _checks.real(self.action_error, "action_error", minimum=0.0)
