@@ -1,5 +1,7 @@
 """DyQRuntime with fake prefill/decode callables standing in for a VLA model."""
 
+import copy
+import pickle
 import statistics
 import threading
 import time
@@ -364,3 +366,10 @@ def test_a_closed_runtime_says_so():
     runtime.close()
     with pytest.raises(RuntimeError, match="DyQRuntime is closed"):
         runtime.step(None, lambda: None, lambda _: None)
+
+
+@pytest.mark.parametrize("copier", [copy.copy, copy.deepcopy, pickle.dumps])
+def test_a_runtime_refuses_to_be_copied_naming_itself(copier):
+    with DyQRuntime(KinematicDispatcher(DispatchConfig()), PrecisionFlag(16)) as runtime:
+        with pytest.raises(TypeError, match="DyQRuntime cannot be copied"):
+            copier(runtime)

@@ -297,6 +297,13 @@ class DyQRuntime:
     def __exit__(self, *exc_info) -> None:
         self.close()
 
+    def __reduce_ex__(self, protocol):
+        # copy.copy, copy.deepcopy and pickle all come here; a copy would share or lose the worker thread and
+        # the step in flight (they had failed on an internal queue, naming neither).
+        raise TypeError("a DyQRuntime cannot be copied or pickled: it owns a worker thread and the step in flight; "
+                        "make one per control loop, DyQRuntime(dispatcher, flag), or copy the dispatcher's "
+                        "config (dispatcher.config)")
+
     def __repr__(self) -> str:
         forced = f", forced={self._forced}" if self._forced is not None else ""
         return f"DyQRuntime(flag={self.flag!r}, prefill_bits={self.prefill_bits!r}, steps={self._step_index}{forced})"
