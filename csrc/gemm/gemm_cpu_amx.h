@@ -43,6 +43,7 @@ constexpr int64_t kAmxPanelColumns = 32;  // output columns per panel: two B til
 constexpr int64_t kAmxPanelDepth = 256;   // columns per unpacked slice: a multiple of every group size
 constexpr int64_t kAmxMaxStepBytes = 64;  // an A tile row
 constexpr int64_t kAmxQuadColumns = 8;    // columns of one quad (one dword of packed weights)
+constexpr int64_t kAmxLoadColumns = 128;  // one 64-byte load of a packed row
 
 // The s8 code of column c of a packed weight row.
 inline int weight_code(const uint8_t* row, int64_t c) {
@@ -317,6 +318,34 @@ inline void prefetch_row_ahead(const uint8_t* row, int64_t col_begin, int64_t k)
 }
 #endif
 
+// The activations as B tiles, both loops' layout: for every block of 32 rows and step (one tile product's
+// columns), the B tiles of the block's rows 0..15 and 16..31; slice by slice of kAmxPanelDepth columns,
+// within a slice block by block, within a block step by step, so that a block's pass over a slice reads one
+// run. The rows past m of the last block are 0; a block's second tile with no row below m is not written,
+// and the tile loops do not read it.
+struct AmxBTiles {
+  int64_t blocks = 0, steps = 0;            // steps over the padded columns
+  int64_t step_columns = 0, tile_bytes = 0;  // of one step; of one B tile
+  std::unique_ptr<uint8_t[]> bytes;
+
+  void allocate(int64_t m, int64_t padded_columns, int64_t columns_per_step, int64_t bytes_per_tile) {
+    blocks = (m + kAmxRowBlock - 1) / kAmxRowBlock;
+    steps = padded_columns / columns_per_step;
+    step_columns = columns_per_step;
+    tile_bytes = bytes_per_tile;
+    bytes.reset(new uint8_t[blocks * steps * 2 * tile_bytes]);  // every byte the loops read is written
+  }
+  // The B tile of rows [16 half, 16 half + 16) of `block` at `step`; the block's next step follows its
+  // second tile.
+  uint8_t* tile(int64_t block, int64_t step, int half) const {
+    const int64_t steps_per_slice = kAmxPanelDepth / step_columns;
+    const int64_t slice = step / steps_per_slice;
+    const int64_t slice_steps = std::min(steps_per_slice, steps - slice * steps_per_slice);
+    const int64_t step_index = slice * steps_per_slice * blocks + block * slice_steps + step % steps_per_slice;
+    return bytes.get() + (2 * step_index + half) * tile_bytes;
+  }
+};
+
 // Panels per pass over the activations: the totals of a pass's panels stay in L2 while each slice of the
 // activations is read once from memory per pass and from L2 once per panel.
 constexpr int64_t kAmxPanelsPerPass = 8;
@@ -335,10 +364,11 @@ constexpr int64_t kAmxPanelsPerPass = 8;
 // Tiles: C0..C3 = output rows (0..15, 16..31 of the panel) x activation rows (0..15, 16..31 of the block);
 // A0/A1 = 16 weight rows x step_bytes; B0/B1 = step_bytes / 4 dword rows x 16 activation rows.
 
-constexpr int64_t kAmxInt8LoadColumns = 128;  // one 64-byte load of a packed row
+// The bytes of an A tile row, and the columns of a step: 64, or the group where it is smaller.
+constexpr int64_t amx_int8_step_bytes(int64_t group_size) { return std::min(kAmxMaxStepBytes, group_size); }
 
 // The columns of one load of the int8 kinds' order: 128, or the group where it is smaller.
-inline int64_t amx_int8_load_columns(int group_size) { return std::min<int64_t>(kAmxInt8LoadColumns, group_size); }
+inline int64_t amx_int8_load_columns(int group_size) { return std::min<int64_t>(kAmxLoadColumns, group_size); }
 
 // The column, past the start of its load of `load_columns`, at position i of the load's order: the even
 // columns (the low nibbles of the load's bytes), then the odd ones (their high nibbles).
@@ -346,33 +376,20 @@ inline int64_t amx_int8_column(int64_t i, int64_t load_columns) {
   return i < load_columns / 2 ? 2 * i : 2 * (i - load_columns / 2) + 1;
 }
 
-// The activations as B tiles: for every block of 32 rows and step, the B tiles of its rows 0..15 and
-// 16..31, each step_bytes / 4 rows of 16 dwords (4 codes of each activation row, in amx_int8_column's
-// order: u8 q_x, or s8 q_x - z_x for the centered kind); slice by slice, within a slice block by block,
-// within a block step by step, so that a block's pass over a slice reads one run. Columns past k and the
-// rows past m of the last block are 0, and so are their z_x and s_x. z_x and s_x per block and group, the
-// block's 32 rows in a row, as the epilogue loads them. At act_bits 8 on 16 rows or fewer (zero_tiles), also
-// per group a B tile row of z_x: dword r holds z_x of row r in each of its bytes (zero_row).
-struct AmxInt8Activations {
-  int64_t blocks = 0, groups = 0, step_bytes = 0, steps = 0;  // steps over the columns padded to whole groups
+// The activations as B tiles (AmxBTiles), each step_bytes / 4 rows of 16 dwords (4 codes of each activation
+// row, in amx_int8_column's order: u8 q_x, or s8 q_x - z_x for the centered kind). Columns past k are 0, and
+// the rows past m have z_x and s_x 0. z_x and s_x per block and group, the block's 32 rows in a row, as the
+// epilogue loads them. At act_bits 8 on 16 rows or fewer (zero_tiles), also per group a B tile row of z_x:
+// dword r holds z_x of row r in each of its bytes (zero_row).
+struct AmxInt8Activations : AmxBTiles {
+  int64_t groups = 0;
   bool zero_tiles = false;
-  std::unique_ptr<uint8_t[]> bytes;
   AlignedVector<float> zeros, scales;  // [block][group][32]
   AlignedVector<uint8_t> zero_rows;    // [group][64], with zero_tiles
 
   // A B tile of z_x (group g's zero_row, loaded with stride 0 into every tile row).
   const uint8_t* zero_row(int64_t group) const { return zero_rows.data() + group * 64; }
 
-  int64_t tile_bytes() const { return step_bytes / 4 * 64; }
-  // The B tile of rows [16 half, 16 half + 16) of `block` at `step`; the block's next step follows its
-  // second tile.
-  uint8_t* tile(int64_t block, int64_t step, int half) const {
-    const int64_t steps_per_slice = kAmxPanelDepth / step_bytes;
-    const int64_t slice = step / steps_per_slice;
-    const int64_t slice_steps = std::min(steps_per_slice, steps - slice * steps_per_slice);
-    const int64_t step_index = slice * steps_per_slice * blocks + block * slice_steps + step % steps_per_slice;
-    return bytes.get() + (2 * step_index + half) * tile_bytes();
-  }
   const float* params(const AlignedVector<float>& values, int64_t block, int64_t group) const {
     return values.data() + (block * groups + group) * kAmxRowBlock;
   }
@@ -382,25 +399,22 @@ template <typename Kind, typename Element>
 AmxInt8Activations amx_int8_activations(const Element* x, int64_t m, int64_t k, int group_size, int act_bits) {
   AmxInt8Activations a;
   a.groups = group_count(k, group_size);
-  a.step_bytes = std::min<int64_t>(kAmxMaxStepBytes, group_size);
   const int64_t padded = a.groups * group_size;  // columns, zero past k
-  a.steps = padded / a.step_bytes;
-  a.blocks = (m + kAmxRowBlock - 1) / kAmxRowBlock;
-  a.bytes.reset(new uint8_t[a.blocks * a.steps * 2 * a.tile_bytes()]);
+  const int64_t step_bytes = amx_int8_step_bytes(group_size);
+  a.allocate(m, padded, step_bytes, step_bytes / 4 * 64);
   a.zeros.assign(a.blocks * a.groups * kAmxRowBlock, 0.0f);
   a.scales.assign(a.blocks * a.groups * kAmxRowBlock, 0.0f);
   a.zero_tiles = !Kind::kCentered && m <= kAmxTileRows;
   if (a.zero_tiles) a.zero_rows.assign(a.groups * 64, 0);
   const int64_t load_columns = amx_int8_load_columns(group_size);
-  const int64_t quads = a.step_bytes / 4;  // B tile rows
+  const int64_t quads = step_bytes / 4;  // B tile rows
   // The bytes of a load at positions [64 i, 64 i + 64) of its order, as indices into the load's 128 bytes.
   [[maybe_unused]] alignas(64) uint8_t load_order[2][64] = {};
   for (int64_t position = 0; position < load_columns; ++position) {
     load_order[position / 64][position % 64] = static_cast<uint8_t>(amx_int8_column(position, load_columns));
   }
   // B tile by B tile (16 rows): the rows' codes in column order, then each step's bytes in the load order,
-  // transposed into the tile's dword rows. A tile whose rows pass m gets zero rows; a block's second tile
-  // with no row below m is not written, and the tile loop does not read it.
+  // transposed into the tile's dword rows.
   parallel_for(0, (m + kAmxTileRows - 1) / kAmxTileRows, 1, [&](int64_t tile_begin, int64_t tile_end) {
     std::vector<float> values(std::is_same_v<Element, float> ? 0 : kAmxTileRows * k);
     AlignedVector<uint8_t> codes(kAmxTileRows * padded);
@@ -436,8 +450,8 @@ AmxInt8Activations amx_int8_activations(const Element* x, int64_t m, int64_t k, 
         }
       }
       for (int64_t step = 0; step < a.steps; ++step) {
-        const int64_t position = step * a.step_bytes % load_columns;  // of the step in its load's order
-        const int64_t load_begin = step * a.step_bytes - position;
+        const int64_t position = step * step_bytes % load_columns;  // of the step in its load's order
+        const int64_t load_begin = step * step_bytes - position;
         uint8_t* tile = a.tile(block, step, static_cast<int>(t % 2));
 #if defined(DYQ_CPU_ISA_AVX512)
         // The step's bytes of each row: one two-table byte permute of its load (load_order).
@@ -456,7 +470,9 @@ AmxInt8Activations amx_int8_activations(const Element* x, int64_t m, int64_t k, 
         for (int64_t lane = 0; lane < kAmxTileRows; ++lane) {
           const uint8_t* load = codes.data() + lane * padded + load_begin;
           for (int64_t q = 0; q < quads; ++q) {
-            for (int b = 0; b < 4; ++b) tile[64 * q + 4 * lane + b] = load[amx_int8_column(position + 4 * q + b, load_columns)];
+            for (int b = 0; b < 4; ++b) {
+              tile[64 * q + 4 * lane + b] = load[amx_int8_column(position + 4 * q + b, load_columns)];
+            }
           }
         }
 #endif
@@ -490,7 +506,7 @@ struct ScalarAmxInt8Panel : AmxInt8PanelLayout<Kind> {
     const int64_t groups = group_count(k, group_size);
     const int64_t first_group = col_begin / group_size;
     const int64_t panel_groups = group_count(depth, group_size);
-    const int64_t step_bytes = std::min<int64_t>(kAmxMaxStepBytes, group_size);
+    const int64_t step_bytes = amx_int8_step_bytes(group_size);
     const int64_t load_columns = amx_int8_load_columns(group_size);
     for (int64_t j = 0; j < kAmxPanelColumns; ++j) {
       const int64_t output = row_begin + j;
@@ -526,8 +542,8 @@ struct AmxInt8Panel : AmxInt8PanelLayout<Kind>, PackByGroupSize<AmxInt8Panel<Kin
   template <int kGroup>
   void pack_rows(const uint8_t* qweight, const float* all_scales, int64_t n, int64_t k, int64_t row_begin,
                  int64_t col_begin, int64_t depth) {
-    constexpr int kGroupsPerLoad = kAmxInt8LoadColumns / kGroup;
-    constexpr int64_t kStepBytes = std::min<int64_t>(kAmxMaxStepBytes, kGroup);
+    constexpr int kGroupsPerLoad = kAmxLoadColumns / kGroup;
+    constexpr int64_t kStepBytes = amx_int8_step_bytes(kGroup);
     constexpr int64_t kStepStride = kAmxPanelColumns * kStepBytes;  // bytes from a row's step to its next
     alignas(64) static constexpr int8_t kCodes[64] = {
         0, 1, 2, 3, 4, 5, 6, 7, -8, -7, -6, -5, -4, -3, -2, -1, 0, 1, 2, 3, 4, 5, 6, 7, -8, -7, -6, -5, -4, -3, -2, -1,
@@ -543,12 +559,12 @@ struct AmxInt8Panel : AmxInt8PanelLayout<Kind>, PackByGroupSize<AmxInt8Panel<Kin
     const int64_t groups = group_count(k, kGroup);
     const int64_t first_group = col_begin / kGroup;
     const int64_t panel_groups = group_count(depth, kGroup);
-    const int64_t loads = group_count(panel_groups * kGroup, kAmxInt8LoadColumns);
+    const int64_t loads = group_count(panel_groups * kGroup, kAmxLoadColumns);
     const int64_t row_bytes = k / 2;
     auto* out = reinterpret_cast<uint8_t*>(this->codes);
     // AmxInt8: per load and row the quadword sums of q_w (16 columns each, plus 8 x 128), reduced below 8 rows
     // at once.
-    [[maybe_unused]] __m512i row_sums[kAmxPanelDepth / kAmxInt8LoadColumns][kAmxPanelColumns];
+    [[maybe_unused]] __m512i row_sums[kAmxPanelDepth / kAmxLoadColumns][kAmxPanelColumns];
     for (int64_t j = 0; j < kAmxPanelColumns; ++j) {
       const int64_t output = row_begin + j;
       if (output >= n) {
@@ -566,14 +582,14 @@ struct AmxInt8Panel : AmxInt8PanelLayout<Kind>, PackByGroupSize<AmxInt8Panel<Kin
       }
       prefetch_row_ahead(row, col_begin, k);
       for (int64_t load = 0; load < loads; ++load) {
-        const int64_t column = col_begin + load * kAmxInt8LoadColumns;
+        const int64_t column = col_begin + load * kAmxLoadColumns;
         // Past k the load reads nothing (code 0): the row may end there, and the matrix with it.
         const int64_t bytes = std::max<int64_t>(0, std::min<int64_t>((k - column) / 2, 64));
         const __mmask64 byte_mask = bytes >= 64 ? ~__mmask64{0} : (__mmask64{1} << bytes) - 1;
         const __m512i packed = _mm512_maskz_loadu_epi8(byte_mask, row + load * 64);
         const __m512i low = permutexvar_epi8(packed, codes);
         const __m512i high = permutexvar_epi8(_mm512_srli_epi16(packed, 4), codes);
-        uint8_t* steps = out + load * (kAmxInt8LoadColumns / kStepBytes) * kStepStride + j * kStepBytes;
+        uint8_t* steps = out + load * (kAmxLoadColumns / kStepBytes) * kStepStride + j * kStepBytes;
         if constexpr (kGroup == 128) {
           _mm512_store_si512(steps, low);
           _mm512_store_si512(steps + kStepStride, high);
@@ -612,7 +628,7 @@ struct AmxInt8Panel : AmxInt8PanelLayout<Kind>, PackByGroupSize<AmxInt8Panel<Kin
   // being its quadwords' halves (G = 64) or quarters (G = 32), which the first levels hold apart.
   template <int kGroupsPerLoad>
   void add_group_sums(const __m512i* rows, int64_t first_group, int64_t panel_groups, int64_t j) {
-    constexpr int64_t kGroup = kAmxInt8LoadColumns / kGroupsPerLoad;
+    constexpr int64_t kGroup = kAmxLoadColumns / kGroupsPerLoad;
     constexpr int64_t kOffset = 8 * 128 * kGroup / 16;  // of a group's quadwords
     // Level 1: lane l of pairs[p] = (row 2p, row 2p + 1) over quadwords 2l and 2l + 1 (G = 32: group l).
     __m512i pairs[4];
@@ -725,8 +741,8 @@ bool amx_int8_gemm(const Element* x, const uint8_t* qweight, const float* scales
   // No column: no slice runs the loop below, whose last group writes the outputs.
   if (k == 0) return bias_outputs(bias, m, n, out);
   const AmxInt8Activations a = amx_int8_activations<Kind>(x, m, k, group_size, act_bits);
-  const int64_t step_bytes = a.step_bytes;
-  const int64_t b_tile_bytes = a.tile_bytes();
+  const int64_t step_bytes = a.step_columns;  // a byte per column
+  const int64_t b_tile_bytes = a.tile_bytes;
   // Everything the loops step by, computed once: a division per group cost as much as a tile product.
   const int64_t steps_per_group = group_size / step_bytes;
   const int64_t groups_per_slice = kAmxPanelDepth / group_size;
@@ -889,7 +905,6 @@ inline void bf16_step_bytes(const float* values, int64_t columns_in_k, int64_t s
 constexpr int64_t kAmxBf16StepColumns = 32;                  // columns of one tile product
 constexpr int64_t kAmxBf16TileBytes = 16 * 64;               // one A or B tile
 constexpr int64_t kAmxBf16StepsPerSlice = kAmxPanelDepth / kAmxBf16StepColumns;
-constexpr int64_t kAmxBf16LoadColumns = 128;  // one 64-byte load of a packed row: four steps
 
 // vpermt2w's indices for step p of a 128-column block (nibble_order_words): word w from word 4 w + p of a
 // pair of 32-word vectors (0..63), the first for w < 16 and the second beyond.
@@ -926,36 +941,17 @@ inline void nibble_order_words(const uint16_t* in, uint16_t* out) {
 // Column c of a slice's panel (past its start) in the order of nibble_order_words: the slice's steps in
 // groups of four per 128 columns.
 inline int64_t nibble_order_column(int64_t step, int64_t element) {
-  return step / 4 * kAmxBf16LoadColumns + 4 * element + step % 4;
+  return step / 4 * kAmxLoadColumns + 4 * element + step % 4;
 }
 
-// The activations as B tiles: for every block of 32 rows and step of 32 columns (nibble_order_words), the
-// B tiles of its rows 0..15 and 16..31, each 16 rows (the step's column pairs) of 16 dwords (the bf16 pair
-// of each activation row); slice by slice, within a slice block by block, within a block step by step, so
-// that a block's pass over a slice reads one run. Columns past k, and the rows past m of the last block,
-// are 0.
-struct AmxBf16Activations {
-  int64_t blocks = 0, steps = 0;  // steps over the columns padded to whole 128-column loads
-  std::unique_ptr<uint8_t[]> bytes;
-
-  // The B tile of rows [16 half, 16 half + 16) of `block` at `step`.
-  uint8_t* tile(int64_t block, int64_t step, int half) const {
-    const int64_t slice = step / kAmxBf16StepsPerSlice;
-    const int64_t slice_steps = std::min(kAmxBf16StepsPerSlice, steps - slice * kAmxBf16StepsPerSlice);
-    const int64_t step_index =
-        slice * kAmxBf16StepsPerSlice * blocks + block * slice_steps + step % kAmxBf16StepsPerSlice;
-    return bytes.get() + (2 * step_index + half) * kAmxBf16TileBytes;
-  }
-};
-
+// The activations as B tiles (AmxBTiles), steps of 32 columns (nibble_order_words), each tile 16 rows (the
+// step's column pairs) of 16 dwords (the bf16 pair of each activation row). Columns past k are 0.
 template <typename Element>
-AmxBf16Activations amx_bf16_activations(const Element* x, int64_t m, int64_t k) {
-  AmxBf16Activations a;
-  a.blocks = (m + kAmxRowBlock - 1) / kAmxRowBlock;
+AmxBTiles amx_bf16_activations(const Element* x, int64_t m, int64_t k) {
+  AmxBTiles a;
   // Whole loads of 128 columns, which hold whole groups (G divides 128).
-  const int64_t padded = group_count(k, kAmxBf16LoadColumns) * kAmxBf16LoadColumns;
-  a.steps = padded / kAmxBf16StepColumns;
-  a.bytes.reset(new uint8_t[a.blocks * a.steps * 2 * kAmxBf16TileBytes]);
+  const int64_t padded = group_count(k, kAmxLoadColumns) * kAmxLoadColumns;
+  a.allocate(m, padded, kAmxBf16StepColumns, kAmxBf16TileBytes);
   constexpr int64_t kStepBytes = kAmxBf16StepColumns * 2;  // one step of one row: 16 bf16 pairs
   // B tile by B tile (16 rows): the rows' bf16 pairs in row order, then each step's 16 x 16 dwords
   // transposed into the tile. A tile whose rows pass m gets zero rows; a block's second tile with no row
@@ -972,9 +968,9 @@ AmxBf16Activations amx_bf16_activations(const Element* x, int64_t m, int64_t k) 
           continue;
         }
         const float* values = row_as_fp32(x + r * k, k, row.data());
-        for (int64_t column = 0; column < padded; column += kAmxBf16LoadColumns) {
-          alignas(64) uint16_t in_order[kAmxBf16LoadColumns];
-          for (int64_t c = 0; c < kAmxBf16LoadColumns; c += kAmxBf16StepColumns) {
+        for (int64_t column = 0; column < padded; column += kAmxLoadColumns) {
+          alignas(64) uint16_t in_order[kAmxLoadColumns];
+          for (int64_t c = 0; c < kAmxLoadColumns; c += kAmxBf16StepColumns) {
             bf16_step_bytes(values + column + c, k - column - c, kAmxBf16StepColumns,
                             reinterpret_cast<uint8_t*>(in_order + c));
           }
@@ -1014,7 +1010,7 @@ struct ScalarAmxBf16Panel {
   void pack(const uint8_t* qweight, const float* all_scales, int64_t n, int64_t k, int group_size, int64_t row_begin,
             int64_t col_begin, int64_t depth) {
     const int64_t groups = group_count(k, group_size);
-    const int64_t steps = group_count(depth, kAmxBf16LoadColumns) * kAmxBf16LoadColumns / kAmxBf16StepColumns;
+    const int64_t steps = group_count(depth, kAmxLoadColumns) * kAmxLoadColumns / kAmxBf16StepColumns;
     for (int64_t j = 0; j < kAmxPanelColumns; ++j) {
       const int64_t output = row_begin + j;
       for (int64_t step = 0; step < steps; ++step) {
@@ -1047,7 +1043,7 @@ struct AmxBf16Panel : PackByGroupSize<AmxBf16Panel> {
   void pack_rows(const uint8_t* qweight, const float* all_scales, int64_t n, int64_t k, int64_t row_begin,
                  int64_t col_begin, int64_t depth) {
     alignas(64) static constexpr float kCodes[16] = {0, 1, 2, 3, 4, 5, 6, 7, -8, -7, -6, -5, -4, -3, -2, -1};
-    constexpr int kGroupsPerLoad = kAmxBf16LoadColumns / kGroup;
+    constexpr int kGroupsPerLoad = kAmxLoadColumns / kGroup;
     const __m512 codes = _mm512_load_ps(kCodes);
     const __m512i low_nibble = _mm512_set1_epi16(0x000F);
     // The group of each word of a load, in index bits 4 and 5: w / 16 at G = 64, w / 8 at G = 32.
@@ -1055,7 +1051,7 @@ struct AmxBf16Panel : PackByGroupSize<AmxBf16Panel> {
     for (int w = 0; w < 32; ++w) word_groups[w] = static_cast<uint16_t>((w * kGroupsPerLoad / 32) << 4);
     const __m512i group_bits = _mm512_load_si512(word_groups);
     const int64_t groups = group_count(k, kGroup);
-    const int64_t loads = group_count(depth, kAmxBf16LoadColumns);
+    const int64_t loads = group_count(depth, kAmxLoadColumns);
     const int64_t row_bytes = k / 2;
     for (int64_t j = 0; j < kAmxPanelColumns; ++j) {
       const int64_t output = row_begin + j;
@@ -1067,7 +1063,7 @@ struct AmxBf16Panel : PackByGroupSize<AmxBf16Panel> {
       const float* row_scales = all_scales + output * groups;
       prefetch_row_ahead(row, col_begin, k);
       for (int64_t load = 0; load < loads; ++load) {
-        const int64_t column = col_begin + load * kAmxBf16LoadColumns;
+        const int64_t column = col_begin + load * kAmxLoadColumns;
         // Past k the load reads nothing (code 0, value 0): the row may end there, and the matrix with it.
         const int64_t bytes = std::min<int64_t>((k - column) / 2, 64);
         const __mmask64 byte_mask = bytes >= 64 ? ~__mmask64{0} : (__mmask64{1} << bytes) - 1;
@@ -1119,7 +1115,7 @@ bool amx_bf16_gemm(const Element* x, const uint8_t* qweight, const float* scales
                    int64_t n, int64_t k, int group_size, Element* out) {
   // No column: no slice runs the loop below, whose last slice writes the outputs.
   if (k == 0) return bias_outputs(bias, m, n, out);
-  const AmxBf16Activations a = amx_bf16_activations(x, m, k);
+  const AmxBTiles a = amx_bf16_activations(x, m, k);
   constexpr int64_t kBlockTotals = kAmxPanelColumns * kAmxRowBlock;  // a panel's totals of one block
   const int64_t panels = (n + kAmxPanelColumns - 1) / kAmxPanelColumns;
   constexpr int64_t kWeightStride = kAmxBf16StepColumns * 2;    // bytes between two rows of a panel's step

@@ -1116,8 +1116,8 @@ inline bool use_dequantized_panel(int64_t m, int64_t k) {
 #endif
 
 #if defined(DYQ_AVX512_HAS_AMX)
-// From this many activation rows on, the AMX tiles (gemm/gemm_cpu_amx.h). The tile loop's cost hardly depends on the rows up to 16 (its work on every
-// weight dominates). W4A16 goes to it from 4 rows: on the Intel Xeon with AMX (Emerald Rapids, hot weights,
+// From this many activation rows on, the AMX tiles (gemm/gemm_cpu_amx.h). The tile loop's cost hardly depends
+// on the rows up to 16 (its work on every weight dominates). W4A16 goes to it from 4 rows: on the Intel Xeon with AMX (Emerald Rapids, hot weights,
 // C++ loop, the two alternating in one process) its tiles took 1.8 to 2.2 ms on 4096 x 4096 from 1 to 6
 // rows on one thread (3.0 to 3.9 ms on 11008 x 4096 and 4096 x 11008), where the bf16 dot products of the
 // AVX-512 row kernels, which cost twice as many cycles there as on the AMD EPYC, grow with the rows: 0.79
@@ -1128,7 +1128,7 @@ inline bool use_dequantized_panel(int64_t m, int64_t k) {
 constexpr int64_t kAmxMinRows = 16;
 constexpr int64_t kAmxFallbackMinRows = 4;
 inline int64_t amx_min_rows(int act_bits) { return act_bits == kFallbackBits ? kAmxFallbackMinRows : kAmxMinRows; }
-static_assert(kBlockColumns == kAmxBf16LoadColumns, "the bf16 row kernels' blocks are nibble_order_words' loads");
+static_assert(kBlockColumns == kAmxLoadColumns, "the bf16 row kernels' blocks are nibble_order_words' loads");
 #endif
 
 // out = x W^T (+ bias) at kBits; returns whether every output is finite.
