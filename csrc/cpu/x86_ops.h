@@ -65,7 +65,9 @@ inline __m512i cvtepu16_epi32(__m256i a) { return _mm512_maskz_cvtepu16_epi32(kA
 inline __m128i cvtepi32_epi8(__m512i a) { return _mm512_maskz_cvtepi32_epi8(kAll16, a); }
 inline __m512i broadcast_i32x4(__m128i a) { return _mm512_maskz_broadcast_i32x4(kAll16, a); }
 inline __m512 permutexvar_ps(__m512i index, __m512 a) { return _mm512_maskz_permutexvar_ps(kAll16, index, a); }
-inline __m512i permutexvar_epi8(__m512i index, __m512i a) { return _mm512_maskz_permutexvar_epi8(~__mmask64{0}, index, a); }
+inline __m512i permutexvar_epi8(__m512i index, __m512i a) {
+  return _mm512_maskz_permutexvar_epi8(~__mmask64{0}, index, a);
+}
 inline __m512i unpacklo_epi64(__m512i a, __m512i b) { return _mm512_maskz_unpacklo_epi64(0xFF, a, b); }
 inline __m512i unpackhi_epi64(__m512i a, __m512i b) { return _mm512_maskz_unpackhi_epi64(0xFF, a, b); }
 template <int kLanes>

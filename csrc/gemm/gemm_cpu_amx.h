@@ -512,7 +512,8 @@ struct ScalarAmxInt8Panel : AmxInt8PanelLayout<Kind> {
       const int64_t output = row_begin + j;
       const uint8_t* row = qweight + output * (k / 2);
       for (int64_t i = 0; i < panel_groups * group_size; ++i) {
-        const int64_t column = col_begin + i / load_columns * load_columns + amx_int8_column(i % load_columns, load_columns);
+        const int64_t column =
+            col_begin + i / load_columns * load_columns + amx_int8_column(i % load_columns, load_columns);
         this->codes[(i / step_bytes * kAmxPanelColumns + j) * step_bytes + i % step_bytes] =
             static_cast<int8_t>(output < n && column < k ? weight_code(row, column) : 0);
       }
@@ -609,7 +610,8 @@ struct AmxInt8Panel : AmxInt8PanelLayout<Kind>, PackByGroupSize<AmxInt8Panel<Kin
         }
         if (Kind::kWeightSums && this->with_weight_sums) {
           // Per quadword the sum over 8 bytes of (low + high codes) + 128 (below 256): 16 columns of one group.
-          row_sums[load][j] = _mm512_sad_epu8(_mm512_xor_si512(_mm512_add_epi8(low, high), offset), _mm512_setzero_si512());
+          const __m512i offset_sums = _mm512_xor_si512(_mm512_add_epi8(low, high), offset);
+          row_sums[load][j] = _mm512_sad_epu8(offset_sums, _mm512_setzero_si512());
         }
       }
     }
@@ -623,9 +625,10 @@ struct AmxInt8Panel : AmxInt8PanelLayout<Kind>, PackByGroupSize<AmxInt8Panel<Kin
   }
 
   // weight_sums of rows j..j+7 for the groups [first_group, first_group + kGroupsPerLoad) of one load (those
-  // below panel_groups) from the rows' quadword sums (16 columns of q_w, plus 8 x 128): three levels of pairwise sums across the
-  // rows (a vector per 8 rows, where one row at a time took a horizontal sum each), the groups of a load
-  // being its quadwords' halves (G = 64) or quarters (G = 32), which the first levels hold apart.
+  // below panel_groups) from the rows' quadword sums (16 columns of q_w, plus 8 x 128): three levels of
+  // pairwise sums across the rows (a vector per 8 rows, where one row at a time took a horizontal sum each),
+  // the groups of a load being its quadwords' halves (G = 64) or quarters (G = 32), which the first levels
+  // hold apart.
   template <int kGroupsPerLoad>
   void add_group_sums(const __m512i* rows, int64_t first_group, int64_t panel_groups, int64_t j) {
     constexpr int64_t kGroup = kAmxLoadColumns / kGroupsPerLoad;
@@ -710,8 +713,8 @@ void add_group_to_totals(const uint32_t (*sums)[kAmxRowBlock], const float* zero
       if constexpr (kZeroTiles) sum = _mm512_sub_epi32(sum, _mm512_load_si512(sums[j] + 16));
       __m512 partial = cvtepi32_ps(sum);
       if constexpr (kWeightSumsTerm) partial = _mm512_fnmadd_ps(zero[h], _mm512_set1_ps(weight_sums[j]), partial);
-      _mm512_store_ps(total + 16 * h,
-                      _mm512_fmadd_ps(partial, _mm512_mul_ps(row_scale[h], weight_scale), _mm512_load_ps(total + 16 * h)));
+      const __m512 scale = _mm512_mul_ps(row_scale[h], weight_scale);
+      _mm512_store_ps(total + 16 * h, _mm512_fmadd_ps(partial, scale, _mm512_load_ps(total + 16 * h)));
     }
   }
 #else

@@ -1116,15 +1116,16 @@ inline bool use_dequantized_panel(int64_t m, int64_t k) {
 #endif
 
 #if defined(DYQ_AVX512_HAS_AMX)
-// From this many activation rows on, the AMX tiles (gemm/gemm_cpu_amx.h). The tile loop's cost hardly depends
-// on the rows up to 16 (its work on every weight dominates). W4A16 goes to it from 4 rows: on the Intel Xeon with AMX (Emerald Rapids, hot weights,
-// C++ loop, the two alternating in one process) its tiles took 1.8 to 2.2 ms on 4096 x 4096 from 1 to 6
-// rows on one thread (3.0 to 3.9 ms on 11008 x 4096 and 4096 x 11008), where the bf16 dot products of the
-// AVX-512 row kernels, which cost twice as many cycles there as on the AMD EPYC, grow with the rows: 0.79
-// ms at 1 row, 2.0 at 3, 2.6 at 4 (1.6 to 1.8, 4.2 and 5.6 to 5.7 ms); on two threads, and on the policy's
-// 256- and 768-column layers, the same way. At 3 rows the two were within 15 % either way. The integer row
-// and panel kernels stay below the tiles' 1.6 ms up to 15 rows (timed before the tiles skipped the empty
-// half of a block of 16 rows or fewer).
+// From this many activation rows on, the AMX tiles (gemm/gemm_cpu_amx.h). The tile loop's cost hardly
+// depends on the rows up to 16 (its work on every weight dominates). W4A16 goes to it from 4 rows: on the
+// Intel Xeon with AMX (Emerald Rapids, hot weights, C++ loop, the two alternating in one process) its tiles
+// took 1.8 to 2.2 ms on 4096 x 4096 from 1 to 6 rows on one thread (3.0 to 3.9 ms on 11008 x 4096 and
+// 4096 x 11008), where the bf16 dot products of the AVX-512 row kernels, which cost twice as many cycles
+// there as on the AMD EPYC, grow with the rows: 0.79 ms at 1 row, 2.0 at 3, 2.6 at 4 (1.6 to 1.8, 4.2 and
+// 5.6 to 5.7 ms); on two threads, and on the policy's 256- and 768-column layers, the same way. At 3 rows
+// the two were within 15 % either way. The integer row and panel kernels stayed below the int8 tiles' 1.6 ms
+// up to 15 rows, timed when those took the weights as B (since as A, about 1.1 to 1.3 ms at 16 rows on one
+// thread in a fast state of the machine): the threshold has not been timed again.
 constexpr int64_t kAmxMinRows = 16;
 constexpr int64_t kAmxFallbackMinRows = 4;
 inline int64_t amx_min_rows(int act_bits) { return act_bits == kFallbackBits ? kAmxFallbackMinRows : kAmxMinRows; }

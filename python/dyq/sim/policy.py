@@ -258,10 +258,11 @@ class TokenPolicy:
                                   f"by dyq train: {error}") from None
         policy = cls(config)
         try:
-            state = {k: v.float() for k, v in load_file(str(directory / CHECKPOINT_FILE)).items()}
+            tensors = load_file(str(directory / CHECKPOINT_FILE))
         except Exception as error:  # safetensors raises its own error types for a truncated or foreign file
             raise FileFormatError(f"policy checkpoint {directory}: {CHECKPOINT_FILE} is not a safetensors file "
                                   f"of tensors: {error}") from None
+        state = {k: v.float() for k, v in tensors.items()}
         try:
             missing, unexpected = policy.model.load_state_dict(state, strict=False)
         except RuntimeError as error:  # a tensor of another shape
