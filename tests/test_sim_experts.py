@@ -142,3 +142,22 @@ def test_collect_resumes_an_interrupted_file(tmp_path):
         assert json.loads(f["data"].attrs["per_task_success"])["0"][1] == f["data"].attrs["attempts"]
     with pytest.raises(ValueError, match="collected with"):
         demos.collect("lift", 4, split, noise=0.3, progress=False, resume=True)
+
+
+@pytest.mark.parametrize("damage", ["not hdf5", "no totals", "truncated"])
+def test_resuming_a_damaged_collection_is_a_file_format_error_naming_it(tmp_path, damage):
+    from dyq.errors import FileFormatError
+
+    path = tmp_path / "demos.hdf5"
+    if damage == "not hdf5":
+        path.write_bytes(np.random.default_rng(3).integers(0, 256, 4000, dtype=np.uint8).tobytes())
+    elif damage == "no totals":  # an HDF5 file of another kind
+        with h5py.File(path, "w") as f:
+            f.create_group("data").attrs["task"] = "lift"
+    else:
+        demos.collect("lift", 1, path, noise=0.2, progress=False)
+        path.write_bytes(path.read_bytes()[:3000])
+    before = path.read_bytes()
+    with pytest.raises(FileFormatError, match="demos.hdf5"):
+        demos.collect("lift", 2, path, noise=0.2, progress=False, resume=True)
+    assert path.read_bytes() == before  # left as it was

@@ -194,3 +194,85 @@ def test_demonstrations_from_several_files_are_their_concatenation(tmp_path):
         load_demonstrations([tmp_path / "one.hdf5", tmp_path / "other.hdf5"])
     with pytest.raises(ValueError, match="at least one"):
         load_demonstrations([])
+
+
+def _damage_demonstrations(h5py, path, damage):
+    """A demonstration file written by _write_demos, then damaged one way."""
+    if damage == "truncated":
+        path.write_bytes(path.read_bytes()[:2000])
+        return
+    if damage == "not hdf5":
+        path.write_bytes(np.random.default_rng(7).integers(0, 256, 3000, dtype=np.uint8).tobytes())
+        return
+    with h5py.File(path, "a") as f:
+        data = f["data"]
+        if damage == "no data group":
+            del f["data"]
+            f.create_group("other")
+        elif damage == "demo without actions":
+            del data["demo_1"]["actions"]
+        elif damage == "demo without observations":
+            del data["demo_0"]["obs"]["policy_vector"]
+        elif damage == "a demo not numbered":
+            data.move("demo_1", "demo_last")
+        elif damage == "actions of 6 values":
+            actions = data["demo_0"]["actions"][()]
+            del data["demo_0"]["actions"]
+            data["demo_0"].create_dataset("actions", data=actions[:, :6])
+        elif damage == "fewer actions than observations":
+            actions = data["demo_1"]["actions"][()]
+            del data["demo_1"]["actions"]
+            data["demo_1"].create_dataset("actions", data=actions[:-1])
+        elif damage == "NaN in observations":
+            data["demo_0"]["obs"]["policy_vector"][1, 2] = np.nan
+        elif damage == "observations of another width":
+            observations = data["demo_1"]["obs"]["policy_vector"][()]
+            del data["demo_1"]["obs"]["policy_vector"]
+            data["demo_1"]["obs"].create_dataset("policy_vector", data=observations[:, :2])
+        elif damage == "names of another width":
+            data.attrs["policy_vector_names"] = ["a", "b"]
+        elif damage == "no demos":
+            for name in list(data):
+                del data[name]
+        elif damage == "task names not json":
+            data.attrs["task_names"] = "[lift"
+        else:
+            raise AssertionError(damage)
+
+
+@pytest.mark.parametrize("damage", ["truncated", "not hdf5", "no data group", "demo without actions",
+                                    "demo without observations", "a demo not numbered", "actions of 6 values",
+                                    "fewer actions than observations", "NaN in observations",
+                                    "observations of another width", "names of another width", "no demos",
+                                    "task names not json"])
+def test_a_damaged_demonstration_file_is_a_file_format_error_naming_it(tmp_path, damage):
+    h5py = pytest.importorskip("h5py")
+    from dyq.sim.train import load_demonstrations, task_names_of
+
+    rng = np.random.default_rng(5)
+    observations = [rng.normal(size=(int(rng.integers(5, 12)), 3)).astype(np.float32) for _ in range(3)]
+    actions = [rng.normal(size=(len(o), 7)).astype(np.float32) for o in observations]
+    path = tmp_path / "demos.hdf5"
+    _write_demos(h5py, path, observations, actions, ["a", "b", "c"])
+    got_obs, got_act, _ = load_demonstrations(path)  # intact, it loads
+    np.testing.assert_array_equal(got_act[2], actions[2])
+    _damage_demonstrations(h5py, path, damage)
+    read = task_names_of if damage == "task names not json" else load_demonstrations
+    with pytest.raises(FileFormatError, match="demos.hdf5"):
+        read(path)
+
+
+def test_train_reports_a_damaged_demonstration_file_in_one_line(tmp_path, capsys):
+    h5py = pytest.importorskip("h5py")
+    from dyq.apps.cli import main
+
+    rng = np.random.default_rng(6)
+    observations = [rng.normal(size=(8, 3)).astype(np.float32) for _ in range(3)]
+    actions = [rng.normal(size=(8, 7)).astype(np.float32) for _ in range(3)]
+    path = tmp_path / "demos.hdf5"
+    _write_demos(h5py, path, observations, actions, ["a", "b", "c"])
+    _damage_demonstrations(h5py, path, "truncated")
+    assert main(["train", "lift", "--data", str(path), "--out", str(tmp_path / "out")]) != 0
+    err = capsys.readouterr().err
+    assert "demos.hdf5" in err and "not an HDF5 file" in err and "Traceback" not in err
+

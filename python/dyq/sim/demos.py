@@ -24,6 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..errors import FileFormatError
 from . import envs, experts
 
 # Execution noise (std, in action units) per task, chosen so the noisy expert still meets its success target
@@ -121,20 +122,33 @@ def collect(task: str, n_demos: int, out_path, seed0: int = envs.DEMO_SEED0, noi
     out_path.parent.mkdir(parents=True, exist_ok=True)
     if resume and not out_path.is_file():
         resume = False  # nothing to resume: start the file
-    with h5py.File(out_path, "a" if resume else "w") as f:
+    try:
+        f = h5py.File(out_path, "a" if resume else "w")
+    except OSError as error:
+        if not resume:
+            raise
+        raise FileFormatError(f"{out_path} is not an HDF5 file that h5py can read ({error}): collect into "
+                              f"another file") from None
+    with f:
         if resume:
-            data = f["data"]
-            stored = {k: data.attrs.get(k) for k in ("task", "noise", "seed0")}
-            stored["task_indices"] = json.loads(data.attrs.get("task_indices", "null"))
-            if (str(stored["task"]), float(stored["noise"]), int(stored["seed0"]), stored["task_indices"]) != (
-                    task, noise, seed0, _indices_attr(task_indices)):
+            try:
+                data = f["data"]
+                stored = {k: data.attrs.get(k) for k in ("task", "noise", "seed0")}
+                stored["task_indices"] = json.loads(data.attrs.get("task_indices", "null"))
+                same = (str(stored["task"]), float(stored["noise"]), int(stored["seed0"]), stored["task_indices"]) == (
+                    task, noise, seed0, _indices_attr(task_indices))
+                per_task = {int(k): v for k, v in json.loads(data.attrs["per_task_success"]).items()}
+                attempts = int(data.attrs["attempts"])
+                successes = int(data.attrs.get("successes", sum(s for s, _ in per_task.values())))
+                steps = [int(data[f"demo_{i}"].attrs["num_samples"]) for i in range(int(data.attrs["kept"]))]
+                later = [k for k in data if int(k.split("_")[1]) >= len(steps)]
+            except (OSError, KeyError, RuntimeError, TypeError, ValueError, IndexError, AttributeError) as error:
+                raise FileFormatError(f"{out_path} is not a collection that dyq collect wrote, or is damaged "
+                                      f"({type(error).__name__}: {error}): collect into another file") from None
+            if not same:
                 raise ValueError(f"{out_path} was collected with {stored}, not task={task!r}, noise={noise}, "
                                  f"seed0={seed0}, task_indices={task_indices}: collect into another file")
-            per_task = {int(k): v for k, v in json.loads(data.attrs["per_task_success"]).items()}
-            attempts = int(data.attrs["attempts"])
-            successes = int(data.attrs.get("successes", sum(s for s, _ in per_task.values())))
-            steps = [int(data[f"demo_{i}"].attrs["num_samples"]) for i in range(int(data.attrs["kept"]))]
-            for name in [k for k in data if int(k.split("_")[1]) >= len(steps)]:
+            for name in later:
                 del data[name]  # written after the last flushed totals
         else:
             data = f.create_group("data")

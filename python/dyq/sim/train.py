@@ -20,9 +20,10 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from ..errors import FileFormatError
 from . import dispatch_budget
 from .policy import TASK_INDEX, PolicyConfig, TokenPolicy
-from .tokens import BinTokenizer
+from .tokens import ACTION_DIMS, BinTokenizer
 
 STATE_FILE = "train_state.pt"
 CALIBRATION_FILE = "calibration.safetensors"
@@ -41,34 +42,104 @@ def load_demonstrations(path) -> tuple[list[np.ndarray], list[np.ndarray], list[
             more_obs, more_act, more_names = load_demonstrations(other)
             if more_names != names:
                 raise ValueError(f"data: {other} has observations {more_names}, {paths[0]} has {names}")
+            if more_obs[0].shape[1] != observations[0].shape[1]:
+                raise ValueError(f"data: {other} has {more_obs[0].shape[1]} observation values a step, {paths[0]} "
+                                 f"has {observations[0].shape[1]}")
             observations += more_obs
             actions += more_act
         return observations, actions, names
-    import h5py
-
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"demonstration file {path} does not exist")
     observations, actions = [], []
-    with h5py.File(path, "r") as f:
-        if "data" not in f:
-            raise ValueError(f"{path} is not in robomimic's layout (no 'data' group)")
-        names = sorted(f["data"].keys(), key=lambda k: int(k.rsplit("_", 1)[-1]))
-        for name in names:
-            demo = f["data"][name]
-            observations.append(np.asarray(demo["obs"]["policy_vector"], dtype=np.float32))
-            actions.append(np.asarray(demo["actions"], dtype=np.float32))
-        observation_names = [str(n) for n in f["data"].attrs.get("policy_vector_names", [])]
+    with _open_demonstrations(path) as f:
+        # h5py reports a damaged object or link table as OSError, KeyError or RuntimeError when it is read.
+        try:
+            data = f["data"]
+            names = _demo_names(path, data)
+            observation_names = [str(n) for n in data.attrs.get("policy_vector_names", [])]
+            for name in names:
+                observation, action = _demo_arrays(path, data, name)
+                if observations and observation.shape[1] != observations[0].shape[1]:
+                    raise FileFormatError(f"demonstration file {path}: {name} has {observation.shape[1]} "
+                                          f"observation values a step, {names[0]} has {observations[0].shape[1]}")
+                observations.append(observation)
+                actions.append(action)
+        except (OSError, KeyError, RuntimeError) as error:
+            raise FileFormatError(f"demonstration file {path} is damaged: {error}") from None
     if not observations:
-        raise ValueError(f"{path} holds no demonstrations")
+        raise FileFormatError(f"demonstration file {path} holds no demonstrations")
+    if observation_names and len(observation_names) != observations[0].shape[1]:
+        raise FileFormatError(f"demonstration file {path}: policy_vector_names names {len(observation_names)} "
+                              f"observation values, its demos have {observations[0].shape[1]}")
     return observations, actions, observation_names
+
+
+def _open_demonstrations(path: Path):
+    """``path`` opened read-only, with a ``data`` group: a FileFormatError otherwise (not HDF5, truncated)."""
+    import h5py
+
+    try:
+        f = h5py.File(path, "r")
+    except OSError as error:
+        raise FileFormatError(f"demonstration file {path} is not an HDF5 file that h5py can read ({error})") from None
+    try:
+        laid_out = isinstance(f.get("data"), h5py.Group)
+    except (OSError, KeyError, RuntimeError) as error:
+        f.close()
+        raise FileFormatError(f"demonstration file {path} is damaged: {error}") from None
+    if not laid_out:
+        f.close()
+        raise FileFormatError(f"demonstration file {path} is not in robomimic's layout (no 'data' group)")
+    return f
+
+
+def _demo_names(path: Path, data) -> list[str]:
+    """The demos of ``data`` in their order, demo_0, demo_1, ... (the number after the last underscore)."""
+    def order(name: str) -> int:
+        number = name.rsplit("_", 1)[-1]
+        if not number.isdigit():
+            raise FileFormatError(f"demonstration file {path}: data/{name} is not a demo_<number> group")
+        return int(number)
+
+    return sorted(data.keys(), key=order)
+
+
+def _demo_arrays(path: Path, data, name: str) -> tuple[np.ndarray, np.ndarray]:
+    """One demo's observation vectors [T, D] and action labels [T, 7], checked: present, of those shapes,
+    finite, and as many of each."""
+    import h5py
+
+    demo = data[name]
+    arrays = {}
+    for key in ("obs/policy_vector", "actions"):
+        dataset = demo.get(key) if isinstance(demo, h5py.Group) else None
+        if not isinstance(dataset, h5py.Dataset):
+            raise FileFormatError(f"demonstration file {path}: data/{name} has no {key} dataset")
+        try:
+            values = np.asarray(dataset[()], dtype=np.float32)
+        except (TypeError, ValueError) as error:
+            raise FileFormatError(f"demonstration file {path}: data/{name}/{key} cannot be read as numbers "
+                                  f"({error})") from None
+        if values.ndim != 2 or values.shape[0] == 0:
+            raise FileFormatError(f"demonstration file {path}: data/{name}/{key} must be [steps, values] with at "
+                                  f"least one step, got shape {values.shape}")
+        if not np.isfinite(values).all():
+            raise FileFormatError(f"demonstration file {path}: data/{name}/{key} holds NaN or Inf")
+        arrays[key] = values
+    observation, action = arrays["obs/policy_vector"], arrays["actions"]
+    if action.shape[1] != ACTION_DIMS:
+        raise FileFormatError(f"demonstration file {path}: data/{name}/actions has {action.shape[1]} values a "
+                              f"step, a policy decodes {ACTION_DIMS}")
+    if len(observation) != len(action):
+        raise FileFormatError(f"demonstration file {path}: data/{name} has {len(observation)} observations and "
+                              f"{len(action)} actions")
+    return observation, action
 
 
 def task_names_of(path) -> list[str]:
     """The tasks of a multi-task demonstration file: its ``data`` attr ``task_names`` (a JSON list), or
     the LIBERO suite's task names where the file names a suite as its task. Several files must agree."""
-    import h5py
-
     from . import libero
 
     if not isinstance(path, (str, Path)):
@@ -79,14 +150,21 @@ def task_names_of(path) -> list[str]:
                 raise ValueError(f"data: {other} holds tasks {other_names}, {paths[0]} holds {names[0]}")
         return names[0]
 
-    with h5py.File(path, "r") as f:
+    with _open_demonstrations(Path(path)) as f:
         names = f["data"].attrs.get("task_names")
         task = f["data"].attrs.get("task")
     if names is not None:
-        return [str(n) for n in json.loads(names)]
+        try:
+            tasks = json.loads(names)
+        except (TypeError, ValueError):
+            tasks = None
+        if not isinstance(tasks, list) or not all(isinstance(n, str) for n in tasks):
+            raise FileFormatError(f"demonstration file {path}: the task_names attribute must be a JSON list of "
+                                  f"task names, got {names!r}")
+        return tasks
     if task is not None and libero.is_suite(str(task)):
         return libero.task_names(str(task))
-    raise ValueError(f"{path} has task_index observations but no task_names attribute")
+    raise FileFormatError(f"demonstration file {path} has task_index observations but no task_names attribute")
 
 
 def _lr(step: int, steps: int, peak: float, warmup: int) -> float:
