@@ -43,8 +43,10 @@ def test_save_pretrained_and_from_pretrained_round_trip_a_dyq_model(float_checkp
 def test_the_config_has_room_for_later_options_and_checks_them():
     config = dyq.DyQConfig()
     assert config.to_dict()["weight_method"] == "rtn_int4_symmetric" and config.to_dict()["rotation"] is None
-    with pytest.raises(ValueError, match="rotation must be None"):
-        dyq.DyQConfig(rotation="hadamard")
+    for rotation in ("hadamard", {"kind": "hadamard", "seed": -1, "construction": 2},
+                     {"kind": "givens", "seed": 0, "construction": 2}, {"kind": "hadamard", "seed": 0}):
+        with pytest.raises(ValueError, match="rotation must be None or a rotated model's description"):
+            dyq.DyQConfig(rotation=rotation)
     with pytest.raises(ValueError, match="group_size must be one of"):
         dyq.DyQConfig(group_size=100)
 
@@ -128,3 +130,60 @@ def test_import_dyq_alone_registers_the_quantizer_for_from_pretrained(float_chec
     )
     result = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=300)
     assert result.returncode == 0, result.stderr[-2000:]
+
+
+def test_save_pretrained_after_quantize_model_loads_back(float_checkpoint, tmp_path):
+    """quantize_model sets the config that from_pretrained rebuilds the model from: without it the checkpoint
+    loads as float layers of random weights, with only a load report to say so."""
+    model = transformers.LlamaForCausalLM.from_pretrained(float_checkpoint)
+    dyq.quantize_model(model, group_size=64, flag=dyq.PrecisionFlag(8))
+    config = model.config.quantization_config
+    assert isinstance(config, dyq.DyQConfig)
+    assert (config.group_size, config.act_bits, config.modules_to_not_convert, config.min_act_bits) == \
+        (64, 8, ["lm_head"], None)
+    model.save_pretrained(tmp_path / "dyq")
+    loaded = transformers.LlamaForCausalLM.from_pretrained(tmp_path / "dyq")
+    assert sum(isinstance(m, dyq.DyQLinear) for m in loaded.modules()) == 7
+    assert type(loaded.lm_head) is torch.nn.Linear and dyq.model_flag(loaded).bits == 8
+    with torch.no_grad():
+        assert torch.equal(loaded(IDS).logits, model(IDS).logits)
+
+
+def test_the_saved_config_names_the_layers_where_the_patterns_cannot(float_checkpoint, tmp_path):
+    """A compiled regular expression does not fit a JSON config: the float layers' full names stand in
+    for it. The floors of min_act_bits load back with the layers."""
+    import re
+
+    model = transformers.LlamaForCausalLM.from_pretrained(float_checkpoint)
+    dyq.quantize_model(model, group_size=32, flag=dyq.PrecisionFlag(4), skip=(re.compile(r"lm_head|k_proj"),),
+                       min_act_bits={"gate_proj": 8, "up_proj": 8})
+    config = model.config.quantization_config
+    assert sorted(config.modules_to_not_convert) == ["lm_head", "model.layers.0.self_attn.k_proj"]
+    assert config.min_act_bits == {"gate_proj": 8, "up_proj": 8}
+    model.save_pretrained(tmp_path / "dyq")
+    loaded = transformers.LlamaForCausalLM.from_pretrained(tmp_path / "dyq")
+    attention, mlp = loaded.model.layers[0].self_attn, loaded.model.layers[0].mlp
+    assert type(attention.k_proj) is torch.nn.Linear and isinstance(attention.q_proj, dyq.DyQLinear)
+    assert (mlp.gate_proj.min_act_bits, mlp.up_proj.min_act_bits, mlp.down_proj.min_act_bits) == (8, 8, 2)
+    for bits in (2, 16):
+        dyq.set_precision(model, bits)
+        dyq.set_precision(loaded, bits)
+        with torch.no_grad():
+            assert torch.equal(loaded(IDS).logits, model(IDS).logits)
+
+
+def test_a_model_one_config_cannot_describe_warns_and_keeps_no_stale_config(float_checkpoint):
+    model = transformers.LlamaForCausalLM.from_pretrained(float_checkpoint)
+    dyq.quantize_model(model, group_size=128, skip=("lm_head", "down_proj"))
+    assert model.config.quantization_config.modules_to_not_convert == ["lm_head", "down_proj"]
+    with pytest.warns(UserWarning, match=r"group sizes \[64, 128\].*dyq.save_quantized"):
+        dyq.quantize_model(model, group_size=64, skip=("lm_head",))
+    assert not isinstance(getattr(model.config, "quantization_config", None), dyq.DyQConfig)
+
+
+def test_min_act_bits_in_the_config_is_checked():
+    assert dyq.DyQConfig(min_act_bits={"gate_proj": 8}).to_dict()["min_act_bits"] == {"gate_proj": 8}
+    with pytest.raises(ValueError, match=r"min_act_bits\['gate_proj'\]"):
+        dyq.DyQConfig(min_act_bits={"gate_proj": 5})
+    with pytest.raises(TypeError, match="min_act_bits must be a dict"):
+        dyq.DyQConfig(min_act_bits=[("gate_proj", 8)])

@@ -140,6 +140,31 @@ def test_a_rotated_quantized_model_saves_and_loads(tmp_path):
         torch.testing.assert_close(loaded(ids).logits, model(ids).logits)
 
 
+def test_a_rotated_quantized_model_round_trips_through_save_pretrained(tmp_path):
+    """quantize_model's config carries the rotation, from_pretrained attaches down_proj's run-time rotation
+    again (a tied model untied by the rotation stays untied)."""
+    from helpers import hf_quantizer_unavailable
+
+    if hf_quantizer_unavailable() is not None:
+        pytest.skip(hf_quantizer_unavailable())
+    model, flag = outlier_llama(), dyq.PrecisionFlag(8)
+    rotate_llama(model, seed=4)
+    dyq.quantize_model(model, group_size=32, flag=flag)
+    assert model.config.quantization_config.rotation == model.dyq_rotation
+    model.save_pretrained(tmp_path / "dyq")
+    loaded = transformers.LlamaForCausalLM.from_pretrained(tmp_path / "dyq")
+    assert loaded.dyq_rotation == {"kind": "hadamard", "seed": 4, "construction": HADAMARD_CONSTRUCTION}
+    assert loaded.lm_head.weight.data_ptr() != loaded.model.embed_tokens.weight.data_ptr()
+    ids = torch.randint(0, 200, (1, 11))
+    with torch.no_grad():
+        assert torch.equal(loaded(ids).logits, model(ids).logits)
+    # A float checkpoint is not rotated on load.
+    outlier_llama().save_pretrained(tmp_path / "float")
+    with pytest.raises(ValueError, match="not rotated on load"):
+        transformers.LlamaForCausalLM.from_pretrained(
+            tmp_path / "float", quantization_config=dyq.DyQConfig(rotation=dict(model.dyq_rotation)))
+
+
 def test_a_file_without_a_construction_is_rebuilt_with_the_first(tmp_path):
     """A model saved before the construction was recorded ran construction 1. Its intermediate size 104 is
     104 x 1 (Paley I over GF(103)) under construction 1 and 52 x 2 under 2: loading it with the current

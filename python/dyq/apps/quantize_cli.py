@@ -63,7 +63,7 @@ def main(args: argparse.Namespace) -> int:
     transformers = require("transformers", "dyq quantize")
     import dyq
 
-    from ..core.serialization import WEIGHT_METHOD_NAMES, from_pretrained_dtype, transformers_model_class
+    from ..core.serialization import from_pretrained_dtype, transformers_model_class
 
     try:  # OUT is read back through the quantizer: refuse before loading a model that could not be written
         dyq.DyQConfig
@@ -101,9 +101,7 @@ def main(args: argparse.Namespace) -> int:
     print(report)
     if not report.converted:
         raise UsageError(f"{args.src}: no linear layer was converted; nothing to write")
-    model.config.quantization_config = dyq.DyQConfig(
-        group_size=args.group_size, act_bits=args.act_bits, modules_to_not_convert=list(skip),
-        weight_method=WEIGHT_METHOD_NAMES[args.method])
+    # quantize_model set model.config.quantization_config, which save_pretrained writes for from_pretrained.
     args.out.mkdir(parents=True, exist_ok=True)
     model.save_pretrained(args.out)
     copied = []

@@ -40,11 +40,19 @@ class DyQConfig(QuantizationConfigMixin):
     (the flag's initial value), the layers of ``modules_to_not_convert`` kept in full precision.
     ``weight_method`` is the saved name of a :func:`dyq.quantize_model` method; quantizing on load runs
     the calibration-free ones (round-to-nearest, the clipping search), while a calibrated model (AWQ, GPTQ) is
-    quantized with ``dyq.quantize_model(..., calibration=...)`` and then saved. ``rotation`` leaves room
-    for later options (no rotation is loaded this way)."""
+    quantized with ``dyq.quantize_model(..., calibration=...)`` and then saved. ``min_act_bits``
+    (``{layer-name pattern: bits}``, as :func:`dyq.quantize_model` takes it) is the floor on the width of the
+    layers it matches. ``rotation`` is a rotated model's description (``model.dyq_rotation``, from
+    :func:`dyq.rotation.rotate_llama`): its weights hold the rotation, and loading attaches the run-time
+    rotation of each down_proj's input again. A float checkpoint is not rotated on load (rotate the float
+    model, then :func:`dyq.quantize_model` it).
+
+    :func:`dyq.quantize_model` sets one on a transformers model it converts (``model.config.quantization_config``),
+    so that ``save_pretrained`` after it writes a checkpoint that ``from_pretrained`` loads back."""
 
     def __init__(self, group_size: int = 128, act_bits: int = 16, modules_to_not_convert=("lm_head",),
-                 weight_method: str = WEIGHT_METHODS[0], rotation: str | None = None, **kwargs: Any):
+                 weight_method: str = WEIGHT_METHODS[0], rotation: str | None = None,
+                 min_act_bits: dict[str, int] | None = None, **kwargs: Any):
         self.quant_method = "dyq"
         self.group_size = check_group_size(group_size)
         self.act_bits = check_bits(act_bits, "act_bits")
@@ -55,9 +63,29 @@ class DyQConfig(QuantizationConfigMixin):
             raise TypeError(f"modules_to_not_convert must be layer names (strings), got {modules_to_not_convert!r}")
         if weight_method not in WEIGHT_METHODS:
             raise ValueError(f"weight_method must be one of {WEIGHT_METHODS}, got {weight_method!r}")
-        if rotation is not None:
-            raise ValueError(f"rotation must be None (no rotation is implemented yet), got {rotation!r}")
-        self.weight_method, self.rotation = weight_method, rotation
+        self.weight_method, self.rotation = weight_method, _checked_rotation(rotation)
+        if min_act_bits is not None and not isinstance(min_act_bits, dict):
+            raise TypeError(f"min_act_bits must be a dict {{layer-name pattern: bits}}, got {min_act_bits!r}")
+        for pattern, bits in (min_act_bits or {}).items():
+            if not isinstance(pattern, str):
+                raise TypeError(f"min_act_bits: patterns must be layer names or globs (strings), got {pattern!r}")
+            check_bits(bits, f"min_act_bits[{pattern!r}]")
+        self.min_act_bits = dict(min_act_bits) if min_act_bits else None
+
+
+def _checked_rotation(rotation) -> dict | None:
+    """None, or ``{"kind": "hadamard", "seed": int >= 0, "construction": one of HADAMARD_CONSTRUCTIONS}``."""
+    if rotation is None:
+        return None
+    from ..rotation import HADAMARD_CONSTRUCTIONS
+
+    if (not isinstance(rotation, dict) or rotation.get("kind") != "hadamard"
+            or set(rotation) != {"kind", "seed", "construction"} or isinstance(rotation["seed"], bool) or not isinstance(rotation["seed"], int) or rotation["seed"] < 0
+            or rotation["construction"] not in HADAMARD_CONSTRUCTIONS):
+        raise ValueError("rotation must be None or a rotated model's description, {'kind': 'hadamard', 'seed': "
+                         f"int >= 0, 'construction': one of {HADAMARD_CONSTRUCTIONS}}} (model.dyq_rotation), got "
+                         f"{rotation!r}")
+    return dict(rotation)
 
 
 @register_quantizer("dyq")
@@ -123,9 +151,13 @@ class DyQHfQuantizer(HfQuantizer):
         return unexpected_keys
 
     def _process_model_before_weight_loading(self, model, **kwargs):
-        if not self.pre_quantized:
-            return
         config = self.quantization_config
+        if not self.pre_quantized:
+            if config.rotation is not None:
+                raise ValueError("rotation is a rotated checkpoint's description; a float checkpoint is not rotated "
+                                 "on load: rotate the float model with dyq.rotation.rotate_llama, then "
+                                 "dyq.quantize_model it")
+            return
         method = next(m for m, saved in WEIGHT_METHOD_NAMES.items() if saved == config.weight_method)
         targets = self._targets(model)
         self._check_stored_layers(model, targets, kwargs.get("checkpoint_files"))
@@ -165,16 +197,28 @@ class DyQHfQuantizer(HfQuantizer):
                     f"layers ({rounded[0][0]}, ...) as {rounded[0][1]}, which would change "
                     "their numerics: load with dtype=torch.float32 (torch_dtype before transformers 4.56; "
                     "model.to(torch.bfloat16) afterwards keeps the scales in fp32), or with transformers 5")
-            for _, module in layers:
+            if config.rotation is not None:
+                # The weights hold the rotation; down_proj's run-time input rotation is rebuilt from its seed
+                # (non-persistent buffers, so after loading, on the device the weights landed on).
+                from ..rotation import attach_online_rotations
+
+                attach_online_rotations(model, config.rotation["seed"], config.rotation["construction"])
+                model.dyq_rotation = dict(config.rotation)
+            floors = config.min_act_bits or {}
+            for name, module in layers:
                 module.bind_flag(flag)
                 module.place_packed_weights()  # the loader may have put tensors of its own in place
+                floor = max((bits for pattern, bits in floors.items() if _matches(name, (pattern,))), default=None)
+                if floor is not None:
+                    module.set_min_act_bits(floor)
         else:
             method = next(m for m, saved in WEIGHT_METHOD_NAMES.items() if saved == config.weight_method)
             if method in CALIBRATED_METHODS:
                 raise ValueError(f"weight_method={config.weight_method!r} needs calibration data, which loading "
                                  "cannot pass: quantize with dyq.quantize_model(model, method=..., calibration=...)")
             quantize_model(model, group_size=config.group_size, skip=config.modules_to_not_convert,
-                           act_bits=config.act_bits, flag=flag, method=method)
+                           act_bits=config.act_bits, flag=flag, method=method, min_act_bits=config.min_act_bits)
+            model.config.quantization_config = config  # the one it was loaded with (quantize_model sets its own)
         return model
 
     def param_needs_quantization(self, model, param_name: str, **kwargs) -> bool:

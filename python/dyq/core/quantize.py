@@ -280,7 +280,77 @@ def quantize_model(model: nn.Module, group_size: int = 128, skip: Iterable[SkipP
     if isinstance(head, DyQLinear) and getattr(config, "tie_word_embeddings", False):
         config.tie_word_embeddings = False
     report.model_bytes_after = _module_bytes(model)
+    describe_for_save_pretrained(model, skip, floors)
     return report
+
+
+def _transformers_model(model: nn.Module) -> bool:
+    """Whether ``model`` is a transformers ``PreTrainedModel`` (without importing transformers for it)."""
+    import sys
+
+    transformers = sys.modules.get("transformers")
+    base = getattr(transformers, "PreTrainedModel", None) if transformers is not None else None
+    return base is not None and isinstance(model, base)
+
+
+def describe_for_save_pretrained(model: nn.Module, skip: tuple = DEFAULT_SKIP, floors: Mapping | None = None) -> None:
+    """Set a transformers model's ``config.quantization_config`` to the :class:`dyq.DyQConfig` that
+    ``from_pretrained`` rebuilds its DyQLinear layers from, so that ``save_pretrained`` writes a checkpoint
+    that loads back (without one, ``from_pretrained`` gives the INT4 layers float weights of random values,
+    with only a load report to say so). ``skip`` and ``floors`` (patterns, as ``quantize_model`` took them)
+    stand in the config where they select exactly the layers that are in float and the floors each layer has;
+    otherwise the layers' full names do. Where one config cannot describe the model (DyQLinear layers of
+    several group sizes or weight methods), a dyq config already there is removed, with a
+    warning that says how to save it instead. Other models, and transformers without dyq's quantizer
+    (before 4.49), are left as they are."""
+    config = getattr(model, "config", None)
+    if config is None or not _transformers_model(model):
+        return
+    try:
+        from .hf_quantizer import DyQConfig
+        from .serialization import WEIGHT_METHOD_NAMES
+    except ImportError:
+        return
+    from .linear import weight_readers
+
+    layers = {name: module for name, module in model.named_modules() if isinstance(module, DyQLinear)}
+    existing = getattr(config, "quantization_config", None)
+    if not layers:
+        return
+    group_sizes = {layer.group_size for layer in layers.values()}
+    methods = {getattr(layer, "weight_method", "rtn") for layer in layers.values()}
+    obstacle = None
+    if len(group_sizes) > 1:
+        obstacle = f"its DyQLinear layers have group sizes {sorted(group_sizes)}"
+    elif len(methods) > 1:
+        obstacle = f"its DyQLinear layers were quantized by methods {sorted(methods)}"
+    if obstacle is not None:
+        if isinstance(existing, DyQConfig):
+            del config.quantization_config
+        warnings.warn(f"dyq.quantize_model: {type(model).__name__}.save_pretrained cannot describe this model "
+                      f"({obstacle}) in one quantization_config; save it with dyq.save_quantized(model, dir) and "
+                      "load it with dyq.load_quantized(model, dir)", stacklevel=3)
+        return
+    readers = weight_readers(model)
+    in_float = [name for name, module in model.named_modules()
+                if (type(module) is nn.Linear or is_transposed_linear(module)) and id(module) not in readers]
+    patterns = list(skip) if all(isinstance(p, str) for p in skip) else None
+    if patterns is None or any(_matches(name, tuple(patterns)) for name in layers) \
+            or not all(_matches(name, tuple(patterns)) for name in in_float):
+        patterns = in_float
+    floor_of = {name: layer.min_act_bits for name, layer in layers.items() if layer.min_act_bits > DyQLinear.min_act_bits}
+    min_act_bits = dict(floors or {})
+    if not all(isinstance(p, str) for p in min_act_bits) or floor_of != {
+            name: bits for name in layers if (bits := max((b for p, b in min_act_bits.items() if _matches(name, (p,))),
+                                                          default=DyQLinear.min_act_bits)) > DyQLinear.min_act_bits}:
+        min_act_bits = floor_of
+    flag = next((layer.flag for layer in layers.values() if layer.flag is not None), None)
+    act_bits = flag.bits if flag is not None else next(iter(layers.values())).act_bits
+    config.quantization_config = DyQConfig(group_size=group_sizes.pop(), act_bits=act_bits,
+                                           modules_to_not_convert=patterns,
+                                           weight_method=WEIGHT_METHOD_NAMES[methods.pop()],
+                                           min_act_bits=min_act_bits or None,
+                                           rotation=getattr(model, "dyq_rotation", None))
 
 
 def _even_columns(t: torch.Tensor | None) -> torch.Tensor | None:
