@@ -181,6 +181,21 @@ def test_a_model_one_config_cannot_describe_warns_and_keeps_no_stale_config(floa
     assert not isinstance(getattr(model.config, "quantization_config", None), dyq.DyQConfig)
 
 
+def test_layers_of_several_flags_are_warned_about(float_checkpoint, tmp_path):
+    """One config holds one width: the layers that a second call converted without the first call's flag
+    load bound to that flag."""
+    model = transformers.LlamaForCausalLM.from_pretrained(float_checkpoint)
+    dyq.quantize_model(model, group_size=64, flag=dyq.PrecisionFlag(8))
+    with pytest.warns(UserWarning, match="read different flags.*one flag at 8 bits"):
+        dyq.quantize_model(model, group_size=64, skip=())
+    model.save_pretrained(tmp_path / "dyq")
+    loaded = transformers.LlamaForCausalLM.from_pretrained(tmp_path / "dyq")
+    assert isinstance(loaded.lm_head, dyq.DyQLinear) and dyq.model_flag(loaded).bits == 8
+    dyq.bind_flag(model, dyq.PrecisionFlag(8))
+    with torch.no_grad():
+        assert torch.equal(loaded(IDS).logits, model(IDS).logits)
+
+
 def test_min_act_bits_in_the_config_is_checked():
     assert dyq.DyQConfig(min_act_bits={"gate_proj": 8}).to_dict()["min_act_bits"] == {"gate_proj": 8}
     with pytest.raises(ValueError, match=r"min_act_bits\['gate_proj'\]"):

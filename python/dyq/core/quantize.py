@@ -346,6 +346,10 @@ def describe_for_save_pretrained(model: nn.Module, skip: tuple = DEFAULT_SKIP, f
         min_act_bits = floor_of
     flag = next((layer.flag for layer in layers.values() if layer.flag is not None), None)
     act_bits = flag.bits if flag is not None else next(iter(layers.values())).act_bits
+    if len({id(layer.flag) if layer.flag is not None else layer.act_bits for layer in layers.values()}) > 1:
+        warnings.warn(f"dyq.quantize_model: the DyQLinear layers of {type(model).__name__} read different flags (or "
+                      f"none): from_pretrained of what save_pretrained writes binds them all to one flag at {act_bits} "
+                      "bits, as dyq.bind_flag(model, flag) would here", stacklevel=3)
     config.quantization_config = DyQConfig(group_size=group_sizes.pop(), act_bits=act_bits,
                                            modules_to_not_convert=patterns,
                                            weight_method=WEIGHT_METHOD_NAMES[methods.pop()],
