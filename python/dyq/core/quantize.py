@@ -314,7 +314,6 @@ def describe_for_save_pretrained(model: nn.Module, skip: tuple = DEFAULT_SKIP, f
     from .linear import weight_readers
 
     layers = {name: module for name, module in model.named_modules() if isinstance(module, DyQLinear)}
-    existing = getattr(config, "quantization_config", None)
     if not layers:
         return
     group_sizes = {layer.group_size for layer in layers.values()}
@@ -325,7 +324,7 @@ def describe_for_save_pretrained(model: nn.Module, skip: tuple = DEFAULT_SKIP, f
     elif len(methods) > 1:
         obstacle = f"its DyQLinear layers were quantized by methods {sorted(methods)}"
     if obstacle is not None:
-        if isinstance(existing, DyQConfig):
+        if isinstance(getattr(config, "quantization_config", None), DyQConfig):
             del config.quantization_config
         warnings.warn(f"dyq.quantize_model: {type(model).__name__}.save_pretrained cannot describe this model "
                       f"({obstacle}) in one quantization_config; save it with dyq.save_quantized(model, dir) and "
@@ -338,12 +337,18 @@ def describe_for_save_pretrained(model: nn.Module, skip: tuple = DEFAULT_SKIP, f
     if patterns is None or any(_matches(name, tuple(patterns)) for name in layers) \
             or not all(_matches(name, tuple(patterns)) for name in in_float):
         patterns = in_float
-    floor_of = {name: layer.min_act_bits for name, layer in layers.items() if layer.min_act_bits > DyQLinear.min_act_bits}
-    min_act_bits = dict(floors or {})
-    if not all(isinstance(p, str) for p in min_act_bits) or floor_of != {
-            name: bits for name in layers if (bits := max((b for p, b in min_act_bits.items() if _matches(name, (p,))),
-                                                          default=DyQLinear.min_act_bits)) > DyQLinear.min_act_bits}:
-        min_act_bits = floor_of
+    no_floor = DyQLinear.min_act_bits
+
+    def floor_by_layer(patterns: Mapping) -> dict[str, int]:
+        """Each layer's floor as ``patterns`` give it (the highest that matches), where it has one."""
+        floors_found = {name: max((b for p, b in patterns.items() if _matches(name, (p,))), default=no_floor)
+                        for name in layers}
+        return {name: bits for name, bits in floors_found.items() if bits > no_floor}
+
+    actual = {name: layer.min_act_bits for name, layer in layers.items() if layer.min_act_bits > no_floor}
+    given = dict(floors or {})
+    exact = all(isinstance(p, str) for p in given) and floor_by_layer(given) == actual
+    min_act_bits = given if exact else actual
     flag = next((layer.flag for layer in layers.values() if layer.flag is not None), None)
     act_bits = flag.bits if flag is not None else next(iter(layers.values())).act_bits
     if len({id(layer.flag) if layer.flag is not None else layer.act_bits for layer in layers.values()}) > 1:
