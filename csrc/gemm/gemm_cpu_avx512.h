@@ -1117,18 +1117,27 @@ inline bool use_dequantized_panel(int64_t m, int64_t k) {
 
 #if defined(DYQ_AVX512_HAS_AMX)
 // From this many activation rows on, the AMX tiles (gemm/gemm_cpu_amx.h). The tile loop's cost hardly
-// depends on the rows up to 16 (its work on every weight dominates). W4A16 goes to it from 4 rows: on the
-// Intel Xeon with AMX (Emerald Rapids, hot weights, C++ loop, the two alternating in one process) its tiles
-// took 1.8 to 2.2 ms on 4096 x 4096 from 1 to 6 rows on one thread (3.0 to 3.9 ms on 11008 x 4096 and
-// 4096 x 11008), where the bf16 dot products of the AVX-512 row kernels, which cost twice as many cycles
-// there as on the AMD EPYC, grow with the rows: 0.79 ms at 1 row, 2.0 at 3, 2.6 at 4 (1.6 to 1.8, 4.2 and
-// 5.6 to 5.7 ms); on two threads, and on the policy's 256- and 768-column layers, the same way. At 3 rows
-// the two were within 15 % either way. The integer row and panel kernels stayed below the int8 tiles' 1.6 ms
-// up to 15 rows, timed when those took the weights as B (since as A, about 1.1 to 1.3 ms at 16 rows on one
-// thread in a fast state of the machine): the threshold has not been timed again.
-constexpr int64_t kAmxMinRows = 16;
-constexpr int64_t kAmxFallbackMinRows = 4;
-inline int64_t amx_min_rows(int act_bits) { return act_bits == kFallbackBits ? kAmxFallbackMinRows : kAmxMinRows; }
+// depends on the rows up to 16 (its work on every weight dominates), the row and panel kernels' grows with
+// them. W4A16 goes to it from 4 rows: on the Intel Xeon with AMX (Emerald Rapids, hot weights, C++ loop, the
+// two alternating in one process) its tiles took 1.8 to 2.2 ms on 4096 x 4096 from 1 to 6 rows on one thread
+// (3.0 to 3.9 ms on 11008 x 4096 and 4096 x 11008), where the bf16 dot products of the AVX-512 row kernels,
+// which cost twice as many cycles there as on the AMD EPYC, grow with the rows: 0.79 ms at 1 row, 2.0 at 3,
+// 2.6 at 4 (1.6 to 1.8, 4.2 and 5.6 to 5.7 ms); on two threads, and on the policy's 256- and 768-column
+// layers, the same way. At 3 rows the two were within 15 % either way. The integer widths, timed the same
+// way (the panels against the int8 tiles with the weights as A, median of nine rounds' ratios, one and two
+// threads, 4096 x 4096, 4096 x 11008 and the policy's 768 x 256): W4A4's centered tiles (W4A2 runs the same
+// loop) were 1.06x to 1.23x faster at 8 rows on 4096-wide layers (0.97x to 0.99x on 768 x 256), 1.10x to
+// 1.51x at 10; W4A8's, which at 16 rows or fewer also multiply the zero tiles, 0.71x to 1.12x at 8, 0.86x to
+// 1.34x at 10 and 0.89x to 1.38x at 12 (4096 x 4096 1.08x to 1.38x, 4096 x 11008 0.98x to 1.12x, 768 x 256
+// 0.89x to 0.99x), 1.05x to 1.45x at 15 on one thread. At 4 rows the row kernels won at every width (1.1x to
+// 1.3x).
+constexpr int64_t kAmxMinRowsCentered = 8;  // act_bits 2 and 4
+constexpr int64_t kAmxMinRowsInt8 = 12;     // act_bits 8
+constexpr int64_t kAmxFallbackMinRows = 4;  // act_bits 16
+inline int64_t amx_min_rows(int act_bits) {
+  if (act_bits == kFallbackBits) return kAmxFallbackMinRows;
+  return act_bits == 8 ? kAmxMinRowsInt8 : kAmxMinRowsCentered;
+}
 static_assert(kBlockColumns == kAmxLoadColumns, "the bf16 row kernels' blocks are nibble_order_words' loads");
 #endif
 
