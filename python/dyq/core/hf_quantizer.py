@@ -29,7 +29,7 @@ from transformers.utils.quantization_config import QuantizationConfigMixin
 from ..control.flag import PrecisionFlag
 from .linear import DyQLinear, is_transposed_linear, route_encoder_layers_through_modules, weight_readers
 from .precision import check_bits, check_group_size
-from .quantize import _matches, quantize_model
+from .quantize import _floor_of, _matches, quantize_model
 from .serialization import WEIGHT_METHOD_NAMES, WEIGHT_METHODS
 from .weight_methods import CALIBRATED_METHODS
 
@@ -51,7 +51,7 @@ class DyQConfig(QuantizationConfigMixin):
     so that ``save_pretrained`` after it writes a checkpoint that ``from_pretrained`` loads back."""
 
     def __init__(self, group_size: int = 128, act_bits: int = 16, modules_to_not_convert=("lm_head",),
-                 weight_method: str = WEIGHT_METHODS[0], rotation: str | None = None,
+                 weight_method: str = WEIGHT_METHODS[0], rotation: dict | None = None,
                  min_act_bits: dict[str, int] | None = None, **kwargs: Any):
         self.quant_method = "dyq"
         self.group_size = check_group_size(group_size)
@@ -79,9 +79,10 @@ def _checked_rotation(rotation) -> dict | None:
         return None
     from ..rotation import HADAMARD_CONSTRUCTIONS
 
-    if (not isinstance(rotation, dict) or rotation.get("kind") != "hadamard"
-            or set(rotation) != {"kind", "seed", "construction"} or isinstance(rotation["seed"], bool) or not isinstance(rotation["seed"], int) or rotation["seed"] < 0
-            or rotation["construction"] not in HADAMARD_CONSTRUCTIONS):
+    described = isinstance(rotation, dict) and set(rotation) == {"kind", "seed", "construction"}
+    seed = rotation["seed"] if described else None
+    if (not described or rotation["kind"] != "hadamard" or isinstance(seed, bool) or not isinstance(seed, int)
+            or seed < 0 or rotation["construction"] not in HADAMARD_CONSTRUCTIONS):
         raise ValueError("rotation must be None or a rotated model's description, {'kind': 'hadamard', 'seed': "
                          f"int >= 0, 'construction': one of {HADAMARD_CONSTRUCTIONS}}} (model.dyq_rotation), got "
                          f"{rotation!r}")
@@ -208,7 +209,7 @@ class DyQHfQuantizer(HfQuantizer):
             for name, module in layers:
                 module.bind_flag(flag)
                 module.place_packed_weights()  # the loader may have put tensors of its own in place
-                floor = max((bits for pattern, bits in floors.items() if _matches(name, (pattern,))), default=None)
+                floor = _floor_of((name,), floors)
                 if floor is not None:
                     module.set_min_act_bits(floor)
         else:

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import fnmatch
 import re
+import sys
 import warnings
 from collections.abc import Mapping
 from dataclasses import dataclass, field
@@ -41,6 +42,11 @@ def _matches(name: str, patterns: Iterable[SkipPattern]) -> bool:
         elif fnmatch.fnmatchcase(name, p) or fnmatch.fnmatchcase(last, p):
             return True
     return False
+
+
+def _floor_of(names: Iterable[str], floors: Mapping) -> int | None:
+    """The highest of ``floors``' bits ({pattern: bits}) whose pattern matches one of a layer's ``names``."""
+    return max((bits for pattern, bits in floors.items() if any(_matches(n, (pattern,)) for n in names)), default=None)
 
 
 def _check_pattern(pattern, argument: str) -> None:
@@ -261,8 +267,7 @@ def quantize_model(model: nn.Module, group_size: int = 128, skip: Iterable[SkipP
             linear.qweight.copy_(qweight)
             linear.scales.copy_(scales)
         linear.weight_method = method
-        floor = max((bits for pattern, bits in floors.items() if any(_matches(n, (pattern,)) for n in names[key])),
-                    default=None)
+        floor = _floor_of(names[key], floors)
         if floor is not None:
             linear.set_min_act_bits(floor)
             report.min_act_bits[first] = floor
@@ -280,20 +285,18 @@ def quantize_model(model: nn.Module, group_size: int = 128, skip: Iterable[SkipP
     if isinstance(head, DyQLinear) and getattr(config, "tie_word_embeddings", False):
         config.tie_word_embeddings = False
     report.model_bytes_after = _module_bytes(model)
-    describe_for_save_pretrained(model, skip, floors)
+    _describe_for_save_pretrained(model, skip, floors)
     return report
 
 
 def _transformers_model(model: nn.Module) -> bool:
     """Whether ``model`` is a transformers ``PreTrainedModel`` (without importing transformers for it)."""
-    import sys
-
     transformers = sys.modules.get("transformers")
     base = getattr(transformers, "PreTrainedModel", None) if transformers is not None else None
     return base is not None and isinstance(model, base)
 
 
-def describe_for_save_pretrained(model: nn.Module, skip: tuple = DEFAULT_SKIP, floors: Mapping | None = None) -> None:
+def _describe_for_save_pretrained(model: nn.Module, skip: tuple = DEFAULT_SKIP, floors: Mapping | None = None) -> None:
     """Set a transformers model's ``config.quantization_config`` to the :class:`dyq.DyQConfig` that
     ``from_pretrained`` rebuilds its DyQLinear layers from, so that ``save_pretrained`` writes a checkpoint
     that loads back (without one, ``from_pretrained`` gives the INT4 layers float weights of random values,
@@ -340,10 +343,9 @@ def describe_for_save_pretrained(model: nn.Module, skip: tuple = DEFAULT_SKIP, f
     no_floor = DyQLinear.min_act_bits
 
     def floor_by_layer(patterns: Mapping) -> dict[str, int]:
-        """Each layer's floor as ``patterns`` give it (the highest that matches), where it has one."""
-        floors_found = {name: max((b for p, b in patterns.items() if _matches(name, (p,))), default=no_floor)
-                        for name in layers}
-        return {name: bits for name, bits in floors_found.items() if bits > no_floor}
+        """Each layer's floor as ``patterns`` give it, where it has one."""
+        found = {name: _floor_of((name,), patterns) for name in layers}
+        return {name: bits for name, bits in found.items() if bits is not None and bits > no_floor}
 
     actual = {name: layer.min_act_bits for name, layer in layers.items() if layer.min_act_bits > no_floor}
     given = dict(floors or {})
