@@ -1123,22 +1123,55 @@ inline bool use_dequantized_panel(int64_t m, int64_t k) {
 // (3.0 to 3.9 ms on 11008 x 4096 and 4096 x 11008), where the bf16 dot products of the AVX-512 row kernels,
 // which cost twice as many cycles there as on the AMD EPYC, grow with the rows: 0.79 ms at 1 row, 2.0 at 3,
 // 2.6 at 4 (1.6 to 1.8, 4.2 and 5.6 to 5.7 ms); on two threads, and on the policy's 256- and 768-column
-// layers, the same way. At 3 rows the two were within 15 % either way. The integer widths, timed the same
-// way (the panels against the int8 tiles with the weights as A, median of nine rounds' ratios, one and two
-// threads, 4096 x 4096, 4096 x 11008 and the policy's 768 x 256): W4A4's centered tiles (W4A2 runs the same
-// loop) were 1.06x to 1.23x faster at 8 rows on 4096-wide layers (0.97x to 0.99x on 768 x 256), 1.10x to
-// 1.51x at 10; W4A8's, which at 16 rows or fewer also multiply the zero tiles, 0.71x to 1.12x at 8, 0.86x to
-// 1.34x at 10 and 0.89x to 1.38x at 12 (4096 x 4096 1.08x to 1.38x, 4096 x 11008 0.98x to 1.12x, 768 x 256
-// 0.89x to 0.99x), 1.05x to 1.45x at 15 on one thread. At 4 rows the row kernels won at every width (1.1x to
-// 1.3x).
-constexpr int64_t kAmxMinRowsCentered = 8;  // act_bits 2 and 4
-constexpr int64_t kAmxMinRowsInt8 = 12;     // act_bits 8
-constexpr int64_t kAmxFallbackMinRows = 4;  // act_bits 16
+// layers, the same way. At 3 rows the two were within 15 % either way. The integer widths, by
+// bench/bench_amx_threshold.cpp (the VNNI kernels against the int8 tiles with the weights as A, in one process,
+// median of nine rounds' ratios; bench/results/amx_threshold_1thread.json and _2threads.json): W4A4's centered
+// tiles (W4A2 runs the same loop) were 0.85x to 1.21x the kernels' speed at 8 rows and 1.02x to 1.42x at 10,
+// on 4096 x 4096, 4096 x 11008 and the policy's 768 x 256, one and two threads; W4A8's, which at 16 rows or
+// fewer also multiply the zero tiles, 0.86x to 1.12x at 10 and 0.95x to 1.17x at 12, 0.89x to 1.23x from 15
+// on. At 4 rows the row kernels won at every width (1.1x to 1.9x).
+constexpr int64_t kAmxMinRowsCentered = 10;  // act_bits 2 and 4
+constexpr int64_t kAmxMinRowsInt8 = 12;      // act_bits 8
+constexpr int64_t kAmxFallbackMinRows = 4;   // act_bits 16
 inline int64_t amx_min_rows(int act_bits) {
   if (act_bits == kFallbackBits) return kAmxFallbackMinRows;
   return act_bits == 8 ? kAmxMinRowsInt8 : kAmxMinRowsCentered;
 }
 static_assert(kBlockColumns == kAmxLoadColumns, "the bf16 row kernels' blocks are nibble_order_words' loads");
+#endif
+
+// out = x W^T (+ bias) at an integer kBits on the AVX-512 VNNI row or panel kernels; returns whether every
+// output is finite.
+template <int kBits, typename Element>
+bool vnni_gemm(const Element* x, const uint8_t* qweight, const float* scales, const Element* bias, int64_t m, int64_t n,
+               int64_t k, int group_size, Element* out) {
+  if (use_panels(m, k, kBits)) {
+    return panel_gemm<VnniPanel>(x, qweight, scales, bias, m, n, k, group_size, kBits, out);
+  }
+  const bool centred = kBits != 8 && n * (k / 2) <= kCentredDecodeMaxWeightBytes;
+  const DecodeActivations activations = decode_activations(x, m, k, group_size, kBits, centred);
+  return run_tiles<kMaxTileRows, decode_columns>(
+      qweight, scales, bias, m, n, k, group_size, out, [&](int64_t r) { return activations.row(r); },
+      [&](auto tile_rows, auto tile_columns, const uint8_t* weight_rows, const float* scales_rows,
+          const DecodeRow* rows, float* sums) {
+        constexpr int kRows = decltype(tile_rows)::value, kCols = decltype(tile_columns)::value;
+        if (centred) {
+          decode_int_kernel<kRows, kCols, false>(weight_rows, scales_rows, k, group_size, rows, sums);
+        } else {
+          decode_int_kernel<kRows, kCols, true>(weight_rows, scales_rows, k, group_size, rows, sums);
+        }
+      });
+}
+
+#if defined(DYQ_AVX512_HAS_AMX)
+// The same on the AMX-INT8 tiles: the centered kind at act_bits 2 and 4, the u8 codes at 8.
+template <int kBits, typename Element>
+bool amx_int8_gemm_at(const Element* x, const uint8_t* qweight, const float* scales, const Element* bias, int64_t m,
+                      int64_t n, int64_t k, int group_size, Element* out) {
+  using Kind = std::conditional_t<(kBits <= 4), AmxInt8Centered, AmxInt8>;
+  return amx_int8_gemm<NativeTiles, Kind, AmxInt8Panel<Kind>>(x, qweight, scales, bias, m, n, k, group_size, kBits,
+                                                              out);
+}
 #endif
 
 // out = x W^T (+ bias) at kBits; returns whether every output is finite.
@@ -1147,33 +1180,9 @@ bool gemm_typed(const Element* x, const uint8_t* qweight, const float* scales, c
                 int64_t k, int group_size, Element* out) {
   if constexpr (ActivationTraits<kBits>::kQuantized) {
 #if defined(DYQ_AVX512_HAS_AMX)
-    if (m >= amx_min_rows(kBits)) {
-      if constexpr (kBits <= 4) {
-        return amx_int8_gemm<NativeTiles, AmxInt8Centered, AmxInt8Panel<AmxInt8Centered>>(x, qweight, scales, bias,
-                                                                                          m, n, k, group_size, kBits,
-                                                                                          out);
-      } else {
-        return amx_int8_gemm<NativeTiles, AmxInt8, AmxInt8Panel<AmxInt8>>(x, qweight, scales, bias, m, n, k, group_size,
-                                                                          kBits, out);
-      }
-    }
+    if (m >= amx_min_rows(kBits)) return amx_int8_gemm_at<kBits>(x, qweight, scales, bias, m, n, k, group_size, out);
 #endif
-    if (use_panels(m, k, kBits)) {
-      return panel_gemm<VnniPanel>(x, qweight, scales, bias, m, n, k, group_size, kBits, out);
-    }
-    const bool centred = kBits != 8 && n * (k / 2) <= kCentredDecodeMaxWeightBytes;
-    const DecodeActivations activations = decode_activations(x, m, k, group_size, kBits, centred);
-    return run_tiles<kMaxTileRows, decode_columns>(
-        qweight, scales, bias, m, n, k, group_size, out, [&](int64_t r) { return activations.row(r); },
-        [&](auto tile_rows, auto tile_columns, const uint8_t* weight_rows, const float* scales_rows,
-            const DecodeRow* rows, float* sums) {
-          constexpr int kRows = decltype(tile_rows)::value, kCols = decltype(tile_columns)::value;
-          if (centred) {
-            decode_int_kernel<kRows, kCols, false>(weight_rows, scales_rows, k, group_size, rows, sums);
-          } else {
-            decode_int_kernel<kRows, kCols, true>(weight_rows, scales_rows, k, group_size, rows, sums);
-          }
-        });
+    return vnni_gemm<kBits>(x, qweight, scales, bias, m, n, k, group_size, out);
   } else {
 #if defined(DYQ_AVX512_HAS_AMX)
     if (m >= amx_min_rows(kBits)) {

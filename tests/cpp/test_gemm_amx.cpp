@@ -46,13 +46,13 @@ void expect_matches_reference(const AmxProblem& p, int act_bits, Gemm&& gemm, co
 }
 
 // m below, at and above the 32 rows of a block, and from the rows where the dispatch takes the tiles (W4A16
-// from 4, W4A4 and W4A2 from 8, W4A8 from 12); n not a multiple of a 32-column panel (output rows past n among
+// from 4, W4A4 and W4A2 from 10, W4A8 from 12); n not a multiple of a 32-column panel (output rows past n among
 // the 8 whose sums of q_w the int8 panels reduce together), and one, two and three panels, and 17 panels (a
 // pass takes eight); k with a remainder group, k not a multiple of 8 (a step's last columns past k), and k
 // over one or more 256-column slices of a panel.
 const AmxProblem kProblems[] = {{1, 40, 256, 128}, {17, 33, 192, 64},  {32, 64, 128, 32},  {45, 70, 200, 64},
                                 {70, 31, 352, 32}, {33, 40, 600, 128}, {20, 90, 202, 32},  {5, 300, 130, 32},
-                                {40, 520, 300, 64}, {9, 70, 200, 32},  {13, 45, 264, 128}};
+                                {40, 520, 300, 64}, {11, 70, 200, 32}, {13, 45, 264, 128}};
 
 class AmxTileLoopTest : public ::testing::TestWithParam<int> {};
 
