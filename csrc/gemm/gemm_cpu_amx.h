@@ -282,6 +282,17 @@ void move_block_tiles(Tiles& tiles, void* block, bool second_half) {
   }
 }
 
+// Clears the C tiles of a block: C0 and C2, and with second_half C1 and C3.
+template <typename Tiles>
+void zero_block_tiles(Tiles& tiles, bool second_half) {
+  tiles.template zero<0>();
+  tiles.template zero<2>();
+  if (second_half) {
+    tiles.template zero<1>();
+    tiles.template zero<3>();
+  }
+}
+
 #if defined(DYQ_AVX512_HAS_AMX)
 // f(std::integral_constant<int, G>{}) for the group sizes the tile loops take (G divides 128), so that the
 // packers' arithmetic of groups within a load is constant.
@@ -349,6 +360,29 @@ struct AmxBTiles {
 // Panels per pass over the activations: the totals of a pass's panels stay in L2 while each slice of the
 // activations is read once from memory per pass and from L2 once per panel.
 constexpr int64_t kAmxPanelsPerPass = 8;
+
+// The totals a thread keeps ([panel][block][output row][activation row]): those of a whole pass where K takes
+// several slices, whose sums each block's totals carry from one slice to the next; where one slice covers K,
+// a block's outputs are written as soon as its last group is in, and two blocks' totals taking turns suffice.
+// Each block's first group of K stores its totals rather than adding to them, so none are cleared. (A
+// pass's totals for 256 rows are 256 KiB: clearing them took 7 % of a W4A8 call on the policy's 768 x 256
+// layer, and they pushed the outputs out of L2.)
+struct AmxPassTotals {
+  static constexpr int64_t kBlockTotals = kAmxPanelColumns * kAmxRowBlock;  // a panel's totals of one block
+  static constexpr int64_t kTurns = 2;
+  int64_t blocks = 0;
+  bool one_slice = false;
+  AlignedVector<float> values;
+
+  AmxPassTotals(int64_t pass_size, int64_t row_blocks, int64_t k)
+      : blocks(row_blocks), one_slice(k <= kAmxPanelDepth),
+        values((one_slice ? kTurns : pass_size * row_blocks) * kBlockTotals) {}
+
+  float* block(int64_t panel_in_pass, int64_t row_block) {
+    const int64_t index = panel_in_pass * blocks + row_block;
+    return values.data() + (one_slice ? index % kTurns : index) * kBlockTotals;
+  }
+};
 
 // ---- AMX-INT8: the weights as the A operand ---------------------------------------------------------
 //
@@ -683,8 +717,9 @@ struct AmxInt8Panel : AmxInt8PanelLayout<Kind>, PackByGroupSize<AmxInt8Panel<Kin
 #endif
 
 // totals[j][0..16) (and [16, 32) with kSecondHalf) += one group's contribution for the 32 output rows j of a
-// panel and a block's activation rows, from the group's C tiles `sums` ([output row][activation row]; the
-// epilogue of the int8 kinds, docs/numerics.md section 3):
+// panel and a block's activation rows (= with `first`, the first group of K, so that no totals need clearing),
+// from the group's C tiles `sums` ([output row][activation row]; the epilogue of the int8 kinds,
+// docs/numerics.md section 3):
 // - AmxInt8: P = sum q_x q_w - z_x sum q_w, exact in fp32 (integers below 2^24), times s_x s_w;
 // - AmxInt8 with zero tiles (kZeroTiles: 16 rows or fewer): the C tiles of the activation rows 16..31 hold
 //   z_x sum q_w itself (the zero rows' products), and P is the difference of the two integers;
@@ -694,7 +729,7 @@ struct AmxInt8Panel : AmxInt8PanelLayout<Kind>, PackByGroupSize<AmxInt8Panel<Kin
 // the vector units beside the AMX unit's tile products and costs about as much, so every instruction counts.
 template <typename Kind, bool kSecondHalf, bool kZeroTiles = false>
 void add_group_to_totals(const uint32_t (*sums)[kAmxRowBlock], const float* zeros, const float* row_scales,
-                         const float* weight_scales, const float* weight_sums, float* totals) {
+                         const float* weight_scales, const float* weight_sums, bool first, float* totals) {
   static_assert(!(kZeroTiles && (kSecondHalf || Kind::kCentered)), "zero tiles take the second half's C tiles");
   constexpr int64_t kRows = kSecondHalf ? kAmxRowBlock : kAmxTileRows;
   constexpr bool kWeightSumsTerm = !Kind::kCentered && !kZeroTiles;
@@ -714,7 +749,8 @@ void add_group_to_totals(const uint32_t (*sums)[kAmxRowBlock], const float* zero
       __m512 partial = cvtepi32_ps(sum);
       if constexpr (kWeightSumsTerm) partial = _mm512_fnmadd_ps(zero[h], _mm512_set1_ps(weight_sums[j]), partial);
       const __m512 scale = _mm512_mul_ps(row_scale[h], weight_scale);
-      _mm512_store_ps(total + 16 * h, _mm512_fmadd_ps(partial, scale, _mm512_load_ps(total + 16 * h)));
+      const __m512 previous = first ? _mm512_setzero_ps() : _mm512_load_ps(total + 16 * h);
+      _mm512_store_ps(total + 16 * h, _mm512_fmadd_ps(partial, scale, previous));
     }
   }
 #else
@@ -723,7 +759,8 @@ void add_group_to_totals(const uint32_t (*sums)[kAmxRowBlock], const float* zero
       // The centered codes' sums are P already: no z_x term.
       const int32_t sum = static_cast<int32_t>(sums[j][r]) - (kZeroTiles ? static_cast<int32_t>(sums[j][16 + r]) : 0);
       const float partial = static_cast<float>(sum) - (kWeightSumsTerm ? zeros[r] * weight_sums[j] : 0.0f);
-      totals[j * kAmxRowBlock + r] += partial * (row_scales[r] * weight_scales[j]);
+      const float previous = first ? 0.0f : totals[j * kAmxRowBlock + r];
+      totals[j * kAmxRowBlock + r] = previous + partial * (row_scales[r] * weight_scales[j]);
     }
   }
 #endif
@@ -734,7 +771,7 @@ void add_group_to_totals(const uint32_t (*sums)[kAmxRowBlock], const float* zero
 // 32 output rows; each takes them kAmxPanelsPerPass at a time, and per slice of columns unpacks each panel
 // of the pass into a buffer that stays in L1 and runs it against every block of activation rows, group by
 // group: the group's C tiles go to one of two buffers, and the previous group's are scaled into the
-// totals of the pass ([panel][block][output row][activation row]) after this group's tile products are
+// totals (AmxPassTotals: [panel][block][output row][activation row]) after this group's tile products are
 // issued, so that the AMX unit works through those while the vector units scale (they would otherwise take
 // turns). Two panel buffers alternate, so that the group being scaled keeps its panel's s_w and sum q_w
 // while the next panel is unpacked. Returns whether every output is finite.
@@ -749,7 +786,6 @@ bool amx_int8_gemm(const Element* x, const uint8_t* qweight, const float* scales
   // Everything the loops step by, computed once: a division per group cost as much as a tile product.
   const int64_t steps_per_group = group_size / step_bytes;
   const int64_t groups_per_slice = kAmxPanelDepth / group_size;
-  constexpr int64_t kBlockTotals = kAmxPanelColumns * kAmxRowBlock;  // a panel's totals of one block
   const int64_t panels = (n + kAmxPanelColumns - 1) / kAmxPanelColumns;
   FiniteOutputs finite;
   parallel_for(0, panels, 1, [&](int64_t panel_begin, int64_t panel_end) {
@@ -758,7 +794,7 @@ bool amx_int8_gemm(const Element* x, const uint8_t* qweight, const float* scales
     std::unique_ptr<Panel[]> panel_buffers(new Panel[2]);
     int panel_buffer = 0;
     const int64_t pass_size = std::min(kAmxPanelsPerPass, panel_end - panel_begin);
-    AlignedVector<float> totals(pass_size * a.blocks * kBlockTotals);
+    AmxPassTotals totals(pass_size, a.blocks, k);
     alignas(64) uint32_t sums[2][kAmxPanelColumns][kAmxRowBlock];  // [buffer][output row][activation row]
     int sums_buffer = 0;
     // A group whose C tiles wait in sums[sums_buffer ^ 1] to be scaled into the totals.
@@ -776,16 +812,17 @@ bool amx_int8_gemm(const Element* x, const uint8_t* qweight, const float* scales
       const float* weight_scales = &job.panel->scales[job.group * kAmxPanelColumns];
       const float* weight_sums = &job.panel->weight_sums[job.group * kAmxPanelColumns];
       const bool second_half = m - row_begin > kAmxTileRows;
+      const bool first = job.global_group == 0;
       if (second_half) {
-        add_group_to_totals<Kind, true>(sums[sums_buffer ^ 1], zeros, row_scales, weight_scales, weight_sums,
+        add_group_to_totals<Kind, true>(sums[sums_buffer ^ 1], zeros, row_scales, weight_scales, weight_sums, first,
                                         job.block_totals);
       } else if (a.zero_tiles) {
         if constexpr (!Kind::kCentered) {
           add_group_to_totals<Kind, false, true>(sums[sums_buffer ^ 1], zeros, row_scales, weight_scales,
-                                                 weight_sums, job.block_totals);
+                                                 weight_sums, first, job.block_totals);
         }
       } else {
-        add_group_to_totals<Kind, false>(sums[sums_buffer ^ 1], zeros, row_scales, weight_scales, weight_sums,
+        add_group_to_totals<Kind, false>(sums[sums_buffer ^ 1], zeros, row_scales, weight_scales, weight_sums, first,
                                          job.block_totals);
       }
       // The block's last group: its outputs, while its totals are in L1.
@@ -796,7 +833,6 @@ bool amx_int8_gemm(const Element* x, const uint8_t* qweight, const float* scales
     };
     for (int64_t pass_begin = panel_begin; pass_begin < panel_end; pass_begin += pass_size) {
       const int pass_count = static_cast<int>(std::min(pass_size, panel_end - pass_begin));
-      std::fill(totals.begin(), totals.end(), 0.0f);
       for (int64_t slice = 0, slice_group = 0; slice < k; slice += kAmxPanelDepth, slice_group += groups_per_slice) {
         const int64_t depth = std::min(kAmxPanelDepth, k - slice);
         const int64_t slice_groups = group_count(depth, group_size);
@@ -813,15 +849,10 @@ bool amx_int8_gemm(const Element* x, const uint8_t* qweight, const float* scales
             // zero tiles they take the products of the weights with the zero row.
             const bool second_half = m - block * kAmxRowBlock > kAmxTileRows;
             const bool upper_tiles = second_half || a.zero_tiles;  // C1 and C3 in use
-            float* block_totals = &totals[(i * a.blocks + block) * kBlockTotals];
+            float* block_totals = totals.block(i, block);
             const uint8_t* b_tile = a.tile(block, first_step, 0);
             for (int64_t group = 0; group < slice_groups; ++group) {
-              tiles.template zero<0>();
-              tiles.template zero<2>();
-              if (upper_tiles) {
-                tiles.template zero<1>();
-                tiles.template zero<3>();
-              }
+              zero_block_tiles(tiles, upper_tiles);
               if (a.zero_tiles) tiles.template load<7>(a.zero_row(slice_group + group), 0);
               for (int64_t s = group * steps_per_group; s < (group + 1) * steps_per_group; ++s) {
                 tiles.template load<6>(b_tile, 64);
@@ -844,7 +875,7 @@ bool amx_int8_gemm(const Element* x, const uint8_t* qweight, const float* scales
           }
         }
       }
-      // The pass's last group, before the next pass clears the totals.
+      // The pass's last group, before the next pass's first groups store theirs.
       scale_pending();
     }
     tiles.release();
@@ -1108,7 +1139,8 @@ struct AmxBf16Panel : PackByGroupSize<AmxBf16Panel> {
 // ScalarAmxBf16Panel or AmxBf16Panel. Threads split the panels of 32 output rows; each takes them
 // kAmxPanelsPerPass at a time, and per slice of columns unpacks each panel of the pass into one buffer
 // and runs it against every block of activation rows, accumulating onto the totals of the pass,
-// [panel][block][output row][activation row], which the C tiles load and store once per slice. The buffer
+// [panel][block][output row][activation row] (AmxPassTotals), which the C tiles store once per slice and
+// load again for every slice but the first, which starts from zeroed tiles. The buffer
 // (16 KiB) stays in L1 from its unpacking to its last tile load: with the pass's slices unpacked at once
 // (128 KiB), their stores went to L2 and bound the unpacking (4096 x 4096 at 16 rows, one thread, the
 // unpacking alone 1.2 to 1.4 ms against 0.65 to 1.05 into one buffer), and the tile loads read the same
@@ -1119,7 +1151,6 @@ bool amx_bf16_gemm(const Element* x, const uint8_t* qweight, const float* scales
   // No column: no slice runs the loop below, whose last slice writes the outputs.
   if (k == 0) return bias_outputs(bias, m, n, out);
   const AmxBTiles a = amx_bf16_activations(x, m, k);
-  constexpr int64_t kBlockTotals = kAmxPanelColumns * kAmxRowBlock;  // a panel's totals of one block
   const int64_t panels = (n + kAmxPanelColumns - 1) / kAmxPanelColumns;
   constexpr int64_t kWeightStride = kAmxBf16StepColumns * 2;    // bytes between two rows of a panel's step
   constexpr int64_t kLowerRows = kAmxTileRows * kWeightStride;  // a step's rows 16..31
@@ -1130,12 +1161,11 @@ bool amx_bf16_gemm(const Element* x, const uint8_t* qweight, const float* scales
     std::unique_ptr<Panel> panel(new Panel);
     // As many panels as a pass of this thread takes: a small layer's call allocates no more.
     const int64_t pass_size = std::min(kAmxPanelsPerPass, panel_end - panel_begin);
-    // [panel][block][output row 0..31][activation row 0..31]: a C tile's rows 128 bytes apart.
-    std::vector<float> totals(pass_size * a.blocks * kBlockTotals);
+    // [output row 0..31][activation row 0..31] per block: a C tile's rows 128 bytes apart.
+    AmxPassTotals totals(pass_size, a.blocks, k);
     const auto* weights = reinterpret_cast<const uint8_t*>(&panel->values[0][0][0]);
     for (int64_t pass_begin = panel_begin; pass_begin < panel_end; pass_begin += pass_size) {
       const int pass_count = static_cast<int>(std::min(pass_size, panel_end - pass_begin));
-      std::fill(totals.begin(), totals.end(), 0.0f);
       for (int64_t slice = 0; slice < k; slice += kAmxPanelDepth) {
         const int64_t depth = std::min(kAmxPanelDepth, k - slice);
         const int64_t first_step = slice / kAmxBf16StepColumns;
@@ -1148,8 +1178,13 @@ bool amx_bf16_gemm(const Element* x, const uint8_t* qweight, const float* scales
             // A block of 16 rows or fewer (M <= 16, or the rows' last block) has nothing in its second B
             // tile: C1 and C3 are neither computed nor loaded or stored, half the block's tile work.
             const bool second_half = m - block * kAmxRowBlock > kAmxTileRows;
-            float* block_totals = &totals[(i * a.blocks + block) * kBlockTotals];
-            move_block_tiles<false>(tiles, block_totals, second_half);
+            float* block_totals = totals.block(i, block);
+            // The first slice starts from zero, the others from the block's totals so far.
+            if (slice == 0) {
+              zero_block_tiles(tiles, second_half);
+            } else {
+              move_block_tiles<false>(tiles, block_totals, second_half);
+            }
             const uint8_t* b_tile = a.tile(block, first_step, 0);
             for (int64_t s = 0; s < slice_steps; ++s, b_tile += 2 * kAmxBf16TileBytes) {
               const uint8_t* a_tile = weights + s * kAmxPanelColumns * kWeightStride;
