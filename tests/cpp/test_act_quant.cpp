@@ -4,6 +4,7 @@
 
 #include <cmath>
 #include <cstring>
+#include <random>
 #include <tuple>
 
 #include "activation/act_quant_cpu.h"
@@ -150,3 +151,40 @@ TEST(ActQuant, EmptyBatchWritesNothing) {
 }
 
 }  // namespace
+
+// The SIMD paths divide by the group's scale through its reciprocal and one correction (act_quant_cpu_row.h,
+// divides_by_reciprocal); their codes must be the division's where it matters most: values at and a few ulps
+// around the half-integer multiples of the scale, where the rounding to a code turns, over scales from the
+// subnormal range to near FLT_MAX (outside [2^-100, 2^100] the paths divide), and subnormal values.
+TEST(ActQuant, CodesAtHalfwayPointsMatchTheDivisionAtEveryScale) {
+  constexpr int kGroup = 32;
+  std::mt19937 rng(2024);
+  for (int act_bits : {2, 4, 8}) {
+    const int levels = (1 << act_bits) - 1;
+    std::vector<float> values;
+    for (int exponent : {-149, -140, -126, -110, -101, -100, -99, -60, -20, 0, 20, 60, 99, 100, 101, 120, 127}) {
+      for (int variant = 0; variant < 24; ++variant) {
+        // A group of range [0, top] (or [-top, 0]): scale top / levels, as activation_group_params forms it.
+        const float mantissa = 1.0f + static_cast<float>(rng() % (1u << 23)) / static_cast<float>(1u << 23);
+        const float top = std::ldexp(mantissa, exponent);
+        if (!(top > 0.0f) || !std::isfinite(top)) continue;
+        const float scale = top / static_cast<float>(levels);
+        const float sign = variant % 2 == 0 ? 1.0f : -1.0f;
+        values.push_back(sign * top);
+        for (int i = 1; i < kGroup; ++i) {
+          const float halfway = (static_cast<float>(rng() % levels) + 0.5f) * scale;
+          float value = halfway;
+          uint32_t bits;
+          std::memcpy(&bits, &value, sizeof(bits));
+          bits += static_cast<uint32_t>(static_cast<int>(rng() % 7) - 3);  // up to 3 ulps either side
+          std::memcpy(&value, &bits, sizeof(bits));
+          if (i % 8 == 0) value = std::ldexp(static_cast<float>(rng() % 1000), -149);  // subnormal (or 0)
+          if (!std::isfinite(value) || std::abs(value) > top) value = halfway;
+          values.push_back(sign * value);
+        }
+      }
+    }
+    const int64_t k = kGroup;
+    check_dtype(ScalarType::kFloat32, values, static_cast<int64_t>(values.size()) / k, k, kGroup, act_bits);
+  }
+}
