@@ -153,7 +153,7 @@ TEST(ActQuant, EmptyBatchWritesNothing) {
 }  // namespace
 
 // The SIMD paths divide by the group's scale through its reciprocal and one correction (act_quant_cpu_row.h,
-// divides_by_reciprocal); their codes must be the division's where it matters most: values at and a few ulps
+// with_quotient_form); their codes must be the division's where it matters most: values at and a few ulps
 // around the half-integer multiples of the scale, where the rounding to a code turns, over scales from the
 // subnormal range to near FLT_MAX (outside [2^-100, 2^100] the paths divide), and subnormal values.
 TEST(ActQuant, CodesAtHalfwayPointsMatchTheDivisionAtEveryScale) {
