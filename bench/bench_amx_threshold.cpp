@@ -22,6 +22,7 @@
 #include <string>
 #include <vector>
 
+#include "bench_util.h"
 #include "cpu/cpu_isa.h"
 #include "parallel/parallel.h"
 #include "weight/weight_pack_cpu.h"
@@ -31,10 +32,7 @@ namespace {
 
 namespace amx = dyq::cpu::avx512_amx;
 
-double median(std::vector<double> values) {
-  std::sort(values.begin(), values.end());
-  return values[values.size() / 2];
-}
+using dyq::bench::median;
 
 struct Row {
   int64_t m, n, k;

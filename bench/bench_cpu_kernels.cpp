@@ -31,12 +31,16 @@
 #include <thread>
 #include <vector>
 
+#include "bench_util.h"
 #include "cpu/cpu_isa.h"
 #include "gemm/gemm_cpu.h"
 #include "parallel/parallel.h"
 #include "weight/weight_pack_cpu.h"
 
 namespace {
+
+using dyq::bench::cpu_model;
+using dyq::bench::median;
 
 constexpr size_t kHugePageBytes = size_t{2} << 20;
 
@@ -83,22 +87,6 @@ int64_t last_level_cache_bytes() {
   return largest > 0 ? largest : int64_t{32} << 20;
 }
 
-std::string cpu_model() {
-  FILE* file = std::fopen("/proc/cpuinfo", "r");
-  if (file == nullptr) return "unknown";
-  char line[512];
-  std::string model = "unknown";
-  while (std::fgets(line, sizeof(line), file) != nullptr) {
-    if (std::strncmp(line, "model name", 10) == 0) {
-      const char* value = std::strchr(line, ':');
-      if (value != nullptr) model = std::string(value + 2, std::strcspn(value + 2, "\n"));
-      break;
-    }
-  }
-  std::fclose(file);
-  return model;
-}
-
 unsigned g_threads = 1;
 int thread_count() { return static_cast<int>(g_threads); }
 
@@ -122,11 +110,6 @@ double stream_read_gbps(const uint8_t* data, size_t bytes) {
     if (hit != nullptr) std::printf("the streaming read found a byte it should not have\n");
   }
   return gbps;
-}
-
-double median(std::vector<double> values) {
-  std::sort(values.begin(), values.end());
-  return values[values.size() / 2];
 }
 
 struct Row {
