@@ -15,8 +15,8 @@
 // - + epilogue: and the epilogue, as the loop runs (both after the group's products are issued);
 // - epilogue alone: the epilogue without any tile work, per group;
 // and the rate of independent 512-bit multiply-adds (no tiles): the vector work the epilogue's time follows.
-// All run in one process, alternating over rounds (the Xeon with AMX measured moved 2x between states within
-// minutes); the table and the JSON give the median of the rounds.
+// All run in one process, alternating over rounds (the Xeon with AMX measured moved 2x to 3x between states
+// within minutes); the table and the JSON give the median of the rounds.
 #define DYQ_CPU_ISA_AVX512_AMX 1
 
 #include <algorithm>
