@@ -81,6 +81,26 @@ def median_ms(fn, *, warmup: int = 3, repeats: int = 15, min_seconds: float = 0.
     return statistics.median(times)
 
 
+def balanced_orders(count: int, rng: random.Random) -> list[list[int]]:
+    """One cycle of round orders of ``count`` candidates (indices) in which every candidate comes right after
+    every other equally often within the rounds: a Williams design (``count`` rounds, each the first one
+    0, 1, count - 1, 2, count - 2, ... shifted by its index modulo ``count``; for an odd count those and
+    their reverses, twice as many rounds), the candidates relabelled at random by ``rng``."""
+    first, low, high = [0], 1, count - 1
+    while low <= high:
+        first.append(low)
+        low += 1
+        if low <= high:
+            first.append(high)
+            high -= 1
+    rounds = [[(index + shift) % count for index in first[:count]] for shift in range(count)]
+    if count % 2:
+        rounds += [order[::-1] for order in rounds]
+    relabel = list(range(count))
+    rng.shuffle(relabel)
+    return [[relabel[index] for index in order] for order in rounds]
+
+
 def interleaved_median_ms(candidates: dict, *, warmup: int = 1, repeats: int = 15, rewarm: bool = False,
                           min_seconds: float = 0.0, max_repeats: int | None = None, seed: int = 0) -> dict:
     """Median wall milliseconds of each candidate, timed in turns: every round calls each candidate once, so
@@ -90,7 +110,12 @@ def interleaved_median_ms(candidates: dict, *, warmup: int = 1, repeats: int = 1
     each of the others about equally often: a call pays for what the one before it left behind (with
     two threads, the call after some of torch's kernels found the other thread asleep, which made it up to
     30 % slower on a 0.06 ms layer of the AMD EPYC), and a fixed order, even one rotated every round,
-    charged that to the same candidate nearly every time.
+    charged that to the same candidate nearly every time. The orders come in cycles of a Williams design
+    (:func:`balanced_orders`), each cycle under its own seeded relabelling, rather than from independent
+    shuffles: over the 60 rounds of a decode row of ``bench/bench_linear.py`` those had put one width after
+    torch's fp32 and bf16 layers, whose weights evict the most, 21 times where 15 was its share, and that
+    width's hot call of 11008 x 4096 at one row came out 1.2x to 1.3x slower than its twin's in two runs
+    (the same kernel; alternating in one loop they tied, 0.93 ms each).
 
     ``candidates`` maps a name to fn, or to (prepare, fn) where prepare() runs untimed before each call
     of fn (to set a precision, say). With ``rewarm`` every timed call follows an untimed one of the same
@@ -110,14 +135,16 @@ def interleaved_median_ms(candidates: dict, *, warmup: int = 1, repeats: int = 1
             if prepare is not None:
                 prepare()
             fn()
-    order = list(calls)
-    shuffle = random.Random(seed).shuffle
-    times = {name: [] for name in order}
+    names = list(calls)
+    rng = random.Random(seed)
+    orders = []  # the rounds still to come in the current cycle
+    times = {name: [] for name in names}
     timed_ms = 0.0
     rounds = 0
     while rounds < repeats or (timed_ms < 1e3 * min_seconds and (max_repeats is None or rounds < max_repeats)):
-        shuffle(order)
-        for name in order:
+        if not orders:
+            orders = balanced_orders(len(names), rng)
+        for name in (names[i] for i in orders.pop(0)):
             prepare, fn = calls[name]
             if prepare is not None:
                 prepare()
