@@ -59,6 +59,10 @@ def test_each_candidate_follows_every_other_and_the_order_is_reproducible(clock)
     assert run(0) == log and run(1) != log
 
 
+def test_no_candidates_give_no_medians(clock):
+    assert results.interleaved_median_ms({}, warmup=0, repeats=3) == {}
+
+
 @pytest.mark.parametrize("count", range(1, 10))
 def test_balanced_orders_put_each_candidate_after_every_other_equally_often(count):
     import random

@@ -86,14 +86,9 @@ def balanced_orders(count: int, rng: random.Random) -> list[list[int]]:
     every other equally often within the rounds: a Williams design (``count`` rounds, each the first one
     0, 1, count - 1, 2, count - 2, ... shifted by its index modulo ``count``; for an odd count those and
     their reverses, twice as many rounds), the candidates relabelled at random by ``rng``."""
-    first, low, high = [0], 1, count - 1
-    while low <= high:
-        first.append(low)
-        low += 1
-        if low <= high:
-            first.append(high)
-            high -= 1
-    rounds = [[(index + shift) % count for index in first[:count]] for shift in range(count)]
+    # 0, 1, count - 1, 2, count - 2, ...: position i holds (i + 1) // 2 for odd i, count - i // 2 for even i > 0.
+    first = [0] + [(i + 1) // 2 if i % 2 else count - i // 2 for i in range(1, count)]
+    rounds = [[(index + shift) % count for index in first] for shift in range(count)]
     if count % 2:
         rounds += [order[::-1] for order in rounds]
     relabel = list(range(count))
@@ -136,6 +131,8 @@ def interleaved_median_ms(candidates: dict, *, warmup: int = 1, repeats: int = 1
                 prepare()
             fn()
     names = list(calls)
+    if not names:
+        return {}
     rng = random.Random(seed)
     orders = []  # the rounds still to come in the current cycle
     times = {name: [] for name in names}
