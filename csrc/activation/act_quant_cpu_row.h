@@ -89,8 +89,8 @@ __mmask16 store_lanes(__m512 v, Element* out) {
 #if defined(DYQ_AVX512_HAS_BF16)
     // vcvtneps2bf16 rounds half to even as from_float does, but reads a denormal as 0 and keeps a NaN's
     // payload: vectors holding either take the integer rounding below. In one instruction rather than a
-    // dozen, the outputs of 256 rows of the policy's 256 x 256 and 768 x 256 layers took 1.05x to 1.35x
-    // less of a W4A8 call (one thread).
+    // dozen, W4A8 calls of 256 rows of the policy's 256 x 256 and 768 x 256 layers, bf16 in and out, ran
+    // 1.02x to 1.36x faster (one thread, alternating in one process, as the machine's state moved).
     constexpr int kNanOrDenormal = 0xA1;  // vfpclassps: quiet NaN, denormal, signalling NaN
     if (_mm512_fpclass_ps_mask(v, kNanOrDenormal) == 0) {
       const __m256i words = reinterpret_cast<__m256i>(_mm512_cvtneps_pbh(v));
@@ -281,8 +281,8 @@ template <bool kByReciprocal>
 }
 
 // The group's constants are passed by value, so that they stay in registers: captured by reference in a
-// lambda, they were loaded again after every byte store (which may alias anything), and the quantization
-// of 256 rows of the policy's 256 x 256 layer took 1.1x as long (W4A8, one thread).
+// lambda, they were loaded again after every byte store (which may alias anything), and W4A8 calls of 256
+// rows of the policy's layers took 1.05x to 1.17x as long (one thread, alternating in one process).
 template <bool kByReciprocal>
 void store_group_codes(const float* v, int64_t columns, __m512 scale, __m512 reciprocal, __m512 zero_point,
                        __m512 levels, uint8_t* codes) {
