@@ -14,6 +14,7 @@ add_library(dyq_cuda_kernels STATIC
   csrc/weight/weight_pack_cuda.cu
   csrc/activation/act_quant_cuda.cu
   csrc/activation/hadamard_cuda.cu
+  csrc/activation/rms_norm_cuda.cu
   csrc/gemm/gemm_decode_cuda.cu
   csrc/gemm/gemm_prefill_cuda.cu
   csrc/gemm/gemm_cuda.cu

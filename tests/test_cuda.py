@@ -370,3 +370,24 @@ def test_hadamard_transform_opcheck(rng):
     x = torch.randn(2, 5, 96, generator=rng).cuda()
     torch.library.opcheck(torch.ops.dyq.hadamard_transform.default,
                           (x, rotation.signs.float().cuda(), rotation.left.float().cuda()))
+
+
+# ---- RMSNorm ---------------------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("dtype", DTYPES)
+@pytest.mark.parametrize("n", [1, 100, 256, 4096, 11008])
+def test_rms_norm_matches_the_reference(n, dtype, rng):
+    """One block per row: the block's sum of squares, then the two roundings (test_rms_norm.py tests the CPU
+    op the same way)."""
+    x = (3 * torch.randn(7, n, generator=rng)).to(dtype)
+    weight = (0.5 + torch.rand(n, generator=rng)).to(dtype)
+    got = dyq.ops.rms_norm(x.cuda(), weight.cuda(), 1e-6)
+    assert got.dtype == dtype
+    expected = dyq.reference.rms_norm(x, weight, 1e-6)
+    step = {torch.float32: 2e-6, torch.bfloat16: 2**-7, torch.float16: 2**-10}[dtype]
+    torch.testing.assert_close(got.cpu().double(), expected.double(), rtol=step, atol=1e-30)
+
+
+def test_rms_norm_opcheck(rng):
+    x = torch.randn(2, 5, 96, generator=rng).cuda()
+    torch.library.opcheck(torch.ops.dyq.rms_norm.default, (x, torch.rand(96, generator=rng).cuda(), 1e-5))

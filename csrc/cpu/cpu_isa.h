@@ -12,8 +12,8 @@
 
 namespace dyq::cpu {
 
-// The kernels of one path, with the arguments of dyq::cpu::gemm, dyq::cpu::quantize_activations and
-// dyq::cpu::hadamard_transform.
+// The kernels of one path, with the arguments of dyq::cpu::gemm, dyq::cpu::quantize_activations,
+// dyq::cpu::hadamard_transform and dyq::cpu::rms_norm.
 struct CpuKernelSet {
   bool (*gemm)(const void* x, ScalarType dtype, const uint8_t* qweight, const float* scales, const void* bias,
                int64_t m, int64_t n, int64_t k, int group_size, int act_bits, void* out);
@@ -23,6 +23,7 @@ struct CpuKernelSet {
   const char* (*gemm_kernel)(int64_t m, int64_t k, int group_size, int act_bits);
   void (*hadamard_transform)(const void* x, ScalarType dtype, const float* signs, const float* left, int64_t rows,
                              int64_t n, int64_t m, void* out);
+  void (*rms_norm)(const void* x, ScalarType dtype, const void* weight, int64_t rows, int64_t n, float eps, void* out);
 };
 
 struct CpuPath {

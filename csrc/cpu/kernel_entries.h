@@ -12,6 +12,7 @@
 #include <vector>
 
 #include "activation/hadamard_cpu_row.h"
+#include "activation/rms_norm_cpu_row.h"
 #include "common/cpu_dtype.h"
 #include "common/precision.h"
 #include "cpu/cpu_isa.h"
@@ -97,6 +98,31 @@ void hadamard_transform(const void* x, ScalarType dtype, const float* signs, con
   });
 }
 
+// RMSNorm (activation/rms_norm_cpu.h): the weight widened once, then rows in parallel, each with its own
+// scratch. A chunk is at least 16K elements (about 10 us on one core), so that a decode step's rows stay on
+// the calling thread and a prefill's are shared.
+template <typename Element>
+void rms_norm_rows(const Element* x, const Element* weight, int64_t rows, int64_t n, float eps, Element* out) {
+  std::vector<float> weight_fp32(n);
+  load_row_fp32(weight, n, weight_fp32.data());
+  const int64_t grain = std::max<int64_t>(1, (int64_t{1} << 14) / n);
+  parallel_for(0, rows, grain, [&](int64_t row_begin, int64_t row_end) {
+    std::vector<float> row(n);
+    for (int64_t r = row_begin; r < row_end; ++r) {
+      rms_norm_row(x + r * n, weight_fp32.data(), n, eps, row.data(), out + r * n);
+    }
+  });
+}
+
+void rms_norm(const void* x, ScalarType dtype, const void* weight, int64_t rows, int64_t n, float eps, void* out) {
+  if (rows == 0 || n == 0) return;
+  dispatch_element_type(dtype, [&](auto element) {
+    using Element = decltype(element);
+    rms_norm_rows(static_cast<const Element*>(x), static_cast<const Element*>(weight), rows, n, eps,
+                  static_cast<Element*>(out));
+  });
+}
+
 // After a GEMM whose outputs were not all finite (gemm_typed said so), the rows whose output is not finite
 // although their x, the bias and the weight scales are: an fp32 intermediate overflowed (x near FLT_MAX
 // makes sum x q_w overflow at 16 bits, or groups of opposite sign meet as inf - inf). Such a row is
@@ -174,6 +200,6 @@ bool gemm(const void* x, ScalarType dtype, const uint8_t* qweight, const float* 
 
 }  // namespace
 
-extern const CpuKernelSet kernels = {gemm, quantize_activations, gemm_kernel, hadamard_transform};
+extern const CpuKernelSet kernels = {gemm, quantize_activations, gemm_kernel, hadamard_transform, rms_norm};
 
 }  // namespace dyq::cpu::DYQ_ISA_NAMESPACE

@@ -12,6 +12,7 @@
 #include <c10/core/SymInt.h>
 #include <c10/util/Exception.h>
 
+#include <cmath>
 #include <optional>
 #include <string>
 #include <tuple>
@@ -220,6 +221,27 @@ inline void check_hadamard_transform(const at::Tensor& x, const at::Tensor& sign
 // Checks hadamard_transform's arguments and allocates its output: x's shape and dtype, contiguous.
 inline at::Tensor hadamard_transform_output(const at::Tensor& x, const at::Tensor& signs, const at::Tensor& left) {
   check_hadamard_transform(x, signs, left);
+  return at::empty(x.sizes(), x.options());
+}
+
+// rms_norm: x [..., n] (n >= 1 its last dimension), weight [n] of x's dtype on x's device, eps a finite
+// number >= 0 (activation/rms_norm_cpu.h).
+inline void check_rms_norm(const at::Tensor& x, const at::Tensor& weight, double eps) {
+  check_activation(x, "x");
+  check_strided(weight, "weight");
+  const c10::SymInt n = x.sym_size(-1);
+  TORCH_CHECK(n >= 1, "dyq: x must have at least one feature (..., n >= 1), got shape ", x.sym_sizes());
+  TORCH_CHECK(weight.dim() == 1 && weight.sym_size(0) == n, "dyq: weight must have shape [n] = [", n,
+              "] (x's last dimension), got ", weight.sym_sizes());
+  TORCH_CHECK(weight.scalar_type() == x.scalar_type(), "dyq: weight must have x's dtype ", x.scalar_type(),
+              ", got ", weight.scalar_type());
+  TORCH_CHECK(std::isfinite(eps) && eps >= 0, "dyq: eps must be a finite number >= 0, got ", eps);
+  check_same_device(weight, "weight", x.device());
+}
+
+// Checks rms_norm's arguments and allocates its output: x's shape and dtype, contiguous.
+inline at::Tensor rms_norm_output(const at::Tensor& x, const at::Tensor& weight, double eps) {
+  check_rms_norm(x, weight, eps);
   return at::empty(x.sizes(), x.options());
 }
 

@@ -15,6 +15,7 @@ TORCH_LIBRARY(dyq, m) {
       "gemm_with_flag(Tensor x, Tensor qweight, Tensor scales, int group_size, Tensor act_bits_flag, "
       "Tensor? bias=None, int min_act_bits=2) -> Tensor");
   m.def("hadamard_transform(Tensor x, Tensor signs, Tensor left) -> Tensor");
+  m.def("rms_norm(Tensor x, Tensor weight, float eps) -> Tensor");
   // The checks alone (metadata only: they read no data, so they work on meta and fake tensors).
   m.def("_check_quantize_weight(Tensor weight, int group_size) -> ()");
   m.def("_check_dequantize_weight(Tensor qweight, Tensor scales, int group_size) -> ()");
@@ -24,6 +25,7 @@ TORCH_LIBRARY(dyq, m) {
       "_check_gemm_with_flag(Tensor x, Tensor qweight, Tensor scales, int group_size, Tensor act_bits_flag, "
       "Tensor? bias=None, int min_act_bits=2) -> ()");
   m.def("_check_hadamard_transform(Tensor x, Tensor signs, Tensor left) -> ()");
+  m.def("_check_rms_norm(Tensor x, Tensor weight, float eps) -> ()");
 }
 
 // Composite: the checks run above every backend and every tensor subclass, on the tensors as given.
@@ -34,6 +36,7 @@ TORCH_LIBRARY_IMPL(dyq, CompositeImplicitAutograd, m) {
   m.impl("_check_gemm", &dyq::check_gemm);
   m.impl("_check_gemm_with_flag", &dyq::check_gemm_with_flag);
   m.impl("_check_hadamard_transform", &dyq::check_hadamard_transform);
+  m.impl("_check_rms_norm", &dyq::check_rms_norm);
 }
 
 namespace {
@@ -56,7 +59,7 @@ void reject_non_strided(const c10::OperatorHandle& op, torch::jit::Stack* stack)
 #define DYQ_REJECT_NON_STRIDED(dispatch_key)                                                                   \
   TORCH_LIBRARY_IMPL(dyq, dispatch_key, m) {                                                                   \
     for (const char* name : {"quantize_weight", "dequantize_weight", "quantize_activations", "gemm",          \
-                             "gemm_with_flag", "hadamard_transform"}) {                                       \
+                             "gemm_with_flag", "hadamard_transform", "rms_norm"}) {                                       \
       m.impl(name, torch::CppFunction::makeFromBoxedFunction<&reject_non_strided>());                         \
     }                                                                                                          \
   }

@@ -9,6 +9,7 @@
 
 #include "activation/act_quant_cpu.h"
 #include "activation/hadamard_cpu.h"
+#include "activation/rms_norm_cpu.h"
 #include "gemm/gemm_cpu.h"
 #include "parallel/parallel.h"
 #include "torch/checks.h"
@@ -110,6 +111,19 @@ at::Tensor hadamard_transform_cpu(const at::Tensor& x, const at::Tensor& signs, 
   return out;
 }
 
+at::Tensor rms_norm_cpu(const at::Tensor& x, const at::Tensor& weight, double eps) {
+  at::Tensor out = rms_norm_output(x, weight, eps);
+  const int64_t n = x.size(-1);
+  const at::Tensor xc = x.contiguous();
+  const at::Tensor weight_c = weight.contiguous();
+  with_cpu_errors([&] {
+    cpu::rms_norm(xc.const_data_ptr(), to_dyq_dtype(x.scalar_type()), weight_c.const_data_ptr(), xc.numel() / n, n,
+                  static_cast<float>(eps), out.mutable_data_ptr());
+    return true;
+  });
+  return out;
+}
+
 struct CpuGemm {
   using Precision = int64_t;  // the CPU kernels take the width itself
 
@@ -163,4 +177,5 @@ TORCH_LIBRARY_IMPL(dyq, CPU, m) {
   m.impl("gemm", &dyq::gemm_cpu);
   m.impl("gemm_with_flag", &dyq::gemm_with_flag_cpu);
   m.impl("hadamard_transform", &dyq::hadamard_transform_cpu);
+  m.impl("rms_norm", &dyq::rms_norm_cpu);
 }

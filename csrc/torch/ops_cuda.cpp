@@ -9,9 +9,11 @@
 #include <torch/library.h>
 
 #include <algorithm>
+#include <limits>
 
 #include "activation/act_quant_cuda.h"
 #include "activation/hadamard_cuda.h"
+#include "activation/rms_norm_cuda.h"
 #include "gemm/gemm_cuda.h"
 #include "torch/checks.h"
 #include "torch/gemm_op.h"
@@ -102,6 +104,21 @@ at::Tensor hadamard_transform_cuda(const at::Tensor& x, const at::Tensor& signs,
   return out;
 }
 
+at::Tensor rms_norm_cuda(const at::Tensor& x, const at::Tensor& weight, double eps) {
+  at::Tensor out = rms_norm_output(x, weight, eps);
+  const c10::cuda::CUDAGuard guard(x.device());
+  const int64_t n = x.size(-1);
+  TORCH_CHECK(n <= std::numeric_limits<int>::max(), "dyq: x has n = ", n, " features; rms_norm on CUDA takes at most ",
+              std::numeric_limits<int>::max());
+  const at::Tensor xc = x.contiguous();
+  const at::Tensor weight_c = weight.contiguous();
+  check_launch(cuda::rms_norm(xc.const_data_ptr(), to_dyq_dtype(x.scalar_type()), weight_c.const_data_ptr(),
+                              xc.numel() / n, n, static_cast<float>(eps), out.mutable_data_ptr(),
+                              at::cuda::getCurrentCUDAStream()),
+               "rms_norm");
+  return out;
+}
+
 // The address the kernels read the flag at. Pinned host memory is mapped into the device's address
 // space (unified addressing), so the kernel reads the host's latest write with no copy; a CUDA int32
 // on x's device is read in place.
@@ -188,4 +205,5 @@ TORCH_LIBRARY_IMPL(dyq, CUDA, m) {
   m.impl("gemm", &dyq::gemm_cuda);
   m.impl("gemm_with_flag", &dyq::gemm_with_flag_cuda);
   m.impl("hadamard_transform", &dyq::hadamard_transform_cuda);
+  m.impl("rms_norm", &dyq::rms_norm_cuda);
 }

@@ -16,6 +16,7 @@ from .core import ops, reference
 from .core.cpu import cpu_gemm_kernel, cpu_info
 from .core.export import export
 from .core.linear import DyQLinear
+from .core.norm import DyQRMSNorm, fuse_rms_norms
 from .core.precision import FALLBACK_BITS, GROUP_SIZES, VALID_BITS
 from .core.quantize import QuantizationReport, bind_flag, model_flag, quantize_model, set_precision
 from .core.serialization import load_quantized, save_quantized
@@ -44,6 +45,7 @@ __all__ = [
     "StepStats",
     "force_precision",
     "DyQLinear",
+    "DyQRMSNorm",
     "FALLBACK_BITS",
     "FileFormatError",
     "GROUP_SIZES",
@@ -56,6 +58,7 @@ __all__ = [
     "cpu_gemm_kernel",
     "cpu_info",
     "export",
+    "fuse_rms_norms",
     "load_quantized",
     "model_flag",
     "ops",

@@ -29,6 +29,7 @@ from transformers.utils.quantization_config import QuantizationConfigMixin
 from ..control.flag import PrecisionFlag
 from .linear import DyQLinear, is_transposed_linear, route_encoder_layers_through_modules, weight_readers
 from .precision import check_bits, check_group_size
+from .norm import fuse_rms_norms
 from .quantize import _floor_of, _matches, quantize_model
 from .serialization import WEIGHT_METHOD_NAMES, WEIGHT_METHODS
 from .weight_methods import CALIBRATED_METHODS
@@ -212,6 +213,7 @@ class DyQHfQuantizer(HfQuantizer):
                 floor = _floor_of((name,), floors)
                 if floor is not None:
                     module.set_min_act_bits(floor)
+            fuse_rms_norms(model)  # as quantize_model does on the other branch
         else:
             method = next(m for m, saved in WEIGHT_METHOD_NAMES.items() if saved == config.weight_method)
             if method in CALIBRATED_METHODS:

@@ -56,8 +56,15 @@ def _hadamard_transform_fake(x, signs, left):
     return x.new_empty(x.shape)
 
 
-# Autograd (gemm and gemm_with_flag through the frozen INT4 weights, hadamard_transform) is registered in
-# C++, csrc/torch/autograd.cpp: a Python autograd kernel would run on every call, gradients or not.
+@torch.library.register_fake("dyq::rms_norm")
+def _rms_norm_fake(x, weight, eps):
+    torch.ops.dyq._check_rms_norm(x, weight, eps)
+    return x.new_empty(x.shape)
+
+
+# Autograd (gemm and gemm_with_flag through the frozen INT4 weights, hadamard_transform, rms_norm) is
+# registered in C++, csrc/torch/autograd.cpp: a Python autograd kernel would run on every call, gradients or
+# not.
 
 
 def _groups(k, group_size: int):
@@ -107,6 +114,13 @@ def hadamard_transform(x: torch.Tensor, signs: torch.Tensor, left: torch.Tensor)
     :class:`dyq.rotation.OnlineRotation`; the kernel applies ``H_p`` by the fast Walsh-Hadamard butterfly,
     ``n (log2 p + m)`` operations per row instead of ``n^2`` (docs/numerics.md, section 1a)."""
     return torch.ops.dyq.hadamard_transform(x, signs, left)
+
+
+def rms_norm(x: torch.Tensor, weight: torch.Tensor, eps: float) -> torch.Tensor:
+    """RMSNorm over the last dimension n of ``x``: ``dtype(weight * dtype(x / sqrt(mean(x^2) + eps)))``, computed
+    in float32 with those two roundings to x's dtype, as transformers' ``LlamaRMSNorm`` computes it, in one
+    pass per row (docs/numerics.md, section 2a). ``weight`` is ``[n]`` of x's dtype; eps a number >= 0."""
+    return torch.ops.dyq.rms_norm(x, weight, eps)
 
 
 def width_counts() -> dict[int, int]:

@@ -15,6 +15,7 @@ from torch import nn
 from ..control.flag import PrecisionFlag
 from .linear import (DyQLinear, as_plain_linear, is_transposed_linear, route_encoder_layers_through_modules,
                      weight_readers)
+from .norm import fuse_rms_norms
 from .precision import check_bits, check_group_size
 from . import reference
 from .weight_methods import (CALIBRATED_METHODS, DEFAULT_CALIBRATION_BITS, awq_prepare, check_calibration_bits,
@@ -62,6 +63,8 @@ class QuantizationReport:
     ``converted`` names each converted layer once (its first name); ``shared`` lists the other names of
     a layer that several parents hold (tied modules), all of which now hold the one DyQLinear;
     ``already_quantized`` names the DyQLinear layers found (a second call converts nothing and says so).
+    ``fused_norms`` names the RMSNorm layers now run through dyq's kernel; ``norms_left`` says why the others
+    were left as they are.
     """
 
     group_size: int
@@ -71,6 +74,8 @@ class QuantizationReport:
     shared: dict[str, list[str]] = field(default_factory=dict)
     already_quantized: list[str] = field(default_factory=list)
     min_act_bits: dict[str, int] = field(default_factory=dict)
+    fused_norms: list[str] = field(default_factory=list)
+    norms_left: dict[str, str] = field(default_factory=dict)
     linear_bytes_before: int = 0
     linear_bytes_after: int = 0
     model_bytes_before: int = 0
@@ -105,12 +110,16 @@ class QuantizationReport:
         if self.already_quantized:
             lines.append(f"  {len(self.already_quantized)} layers were DyQLinear already")
         lines += [f"  skipped {name}: {why}" for name, why in self.skipped.items()]
+        if self.fused_norms:
+            lines.append(f"  {len(self.fused_norms)} RMSNorm layers run through dyq's fused kernel")
+        lines += [f"  RMSNorm {name} left as it is: {why}" for name, why in self.norms_left.items()]
         return "\n".join(lines)
 
 
 def quantize_model(model: nn.Module, group_size: int = 128, skip: Iterable[SkipPattern] = DEFAULT_SKIP,
                    act_bits: int = 16, flag: PrecisionFlag | None = None, method: str = "rtn", calibration=None,
-                   calibration_bits=DEFAULT_CALIBRATION_BITS, min_act_bits=None) -> QuantizationReport:
+                   calibration_bits=DEFAULT_CALIBRATION_BITS, min_act_bits=None,
+                   fuse_norms: bool = True) -> QuantizationReport:
     """Convert every ``nn.Linear`` of ``model`` in place to a :class:`DyQLinear` with INT4 weights (and
     every transformers ``Conv1D``, the transposed linear layer of GPT-2 and the models built on it). The
     out_proj of an ``nn.MultiheadAttention``, whose weight the attention reads without calling the layer,
@@ -143,6 +152,10 @@ def quantize_model(model: nn.Module, group_size: int = 128, skip: Iterable[SkipP
         min_act_bits: ``{pattern: bits}``, patterns as in ``skip``: the matching converted layers never run
             below ``bits`` (a floor on the flag, :class:`DyQLinear`), e.g. ``{"gate_proj": 8, "up_proj": 8}``
             (docs/quantization.md: where a Llama's A4 error comes from).
+        fuse_norms: also run the model's RMSNorm layers through dyq's fused kernel (:class:`DyQRMSNorm`,
+            ``torch.ops.dyq.rms_norm``): one pass per row instead of seven framework operations, the same
+            numerics but for the order of a sum. Only the norms the kernel reproduces on a probe input are
+            converted; the report lists them (``fused_norms``) and why others stay (``norms_left``).
 
     Each Linear is converted in place (its class becomes DyQLinear), so a layer that several parents
     share stays one layer, and a bare ``nn.Linear`` passed as ``model`` is itself converted.
@@ -167,6 +180,8 @@ def quantize_model(model: nn.Module, group_size: int = 128, skip: Iterable[SkipP
     for pattern, bits in floors.items():
         _check_pattern(pattern, "min_act_bits")
         check_bits(bits, f"min_act_bits[{pattern!r}]")
+    if not isinstance(fuse_norms, bool):
+        raise TypeError(f"fuse_norms must be True or False, got {fuse_norms!r}")
     if skip is None:
         raise TypeError("skip must be layer-name patterns (a glob, a compiled regular expression, or a tuple of "
                         "them); pass skip=() to convert every layer, got None")
@@ -277,6 +292,8 @@ def quantize_model(model: nn.Module, group_size: int = 128, skip: Iterable[SkipP
             report.shared[first] = others
 
     route_encoder_layers_through_modules(model)
+    if fuse_norms:
+        report.fused_norms, report.norms_left = fuse_rms_norms(model)
     # A converted LM head no longer shares the input embedding's float weight: a Hugging Face config that
     # still ties them would make save_pretrained's checkpoint tie them again when it is loaded, onto an INT4
     # head that has no weight to tie.

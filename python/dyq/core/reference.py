@@ -181,3 +181,12 @@ def gemm_error_bound(x: torch.Tensor, qweight: torch.Tensor, scales: torch.Tenso
     if bias is not None:
         y = y + bias.double().abs()
     return y.reshape(*x.shape[:-1], qweight.shape[0])
+
+
+def rms_norm(x: torch.Tensor, weight: torch.Tensor, eps: float) -> torch.Tensor:
+    """RMSNorm over the last dimension (docs/numerics.md, section 2a): x widened to float32, scaled by
+    1 / sqrt(mean(x^2) + eps), rounded to x's dtype, then multiplied by ``weight`` in that dtype (the product
+    of two values of the dtype, computed in float32 and rounded once, as torch multiplies them)."""
+    h = x.float()
+    h = h * torch.rsqrt(h.pow(2).mean(-1, keepdim=True) + eps)
+    return weight * h.to(x.dtype)

@@ -25,6 +25,7 @@ from torch import nn
 
 from ..control.flag import PrecisionFlag
 from .linear import DyQLinear, as_plain_linear, is_transposed_linear, route_encoder_layers_through_modules
+from .norm import fuse_rms_norms
 from .precision import check_bits, check_group_size
 
 CONFIG_NAME = "dyq_config.json"
@@ -209,4 +210,5 @@ def load_quantized(model_or_config, directory: str | os.PathLike) -> nn.Module:
     if missing or unexpected:
         raise ValueError(f"the saved weights do not fit this model: missing {sorted(missing)[:5]}, "
                          f"unexpected {sorted(unexpected)[:5]}")
+    fuse_rms_norms(model)  # as quantize_model does (its norms' weights are loaded now)
     return model
