@@ -7,7 +7,8 @@ the logits of its last position only (``logits_to_keep=1`` where transformers ha
 dyq's own policy do: the first action token needs no others.
 
 dyq runs ``dyq.quantize_model`` on a copy of the model in a base dtype (its LM head and everything outside
-the linear layers stay in that dtype) and then sets the width with ``dyq.set_precision``; the label
+the linear layers stay in that dtype; its RMSNorm layers run through dyq's fused norm, as quantize_model does
+by default, and ``dyq_fused_norms`` counts them) and then sets the width with ``dyq.set_precision``; the label
 ``w4a8/bf16`` is W4A8 on the bf16 model. Where the CPU computes in bf16 (dyq's ``avx512_bf16`` and ``amx``
 paths) dyq is timed on both bases: on the bf16 one, as in the bf16 baseline, and on the fp32 one, as dyq's
 own policy runs (what dyq leaves alone is then computed in fp32: torch's bf16 attention over one query is
@@ -178,8 +179,7 @@ def time_config(name: str, prompt: int, repeats: int, dyq_bases: list[str], bits
     parameters = sum(p.numel() for p in fp32.parameters())
     bf16 = copy.deepcopy(fp32).to(torch.bfloat16)
     quantized = {base: copy.deepcopy(bf16 if base == "bf16" else fp32) for base in dyq_bases}
-    for model in quantized.values():
-        dyq.quantize_model(model)
+    fused_norms = {base: len(dyq.quantize_model(model).fused_norms) for base, model in quantized.items()}
     peers = {peer: copy.deepcopy(bf16) for peer in (BITSANDBYTES_PEERS if bitsandbytes else ())}
     for peer, model in peers.items():
         replace_linear_layers(model, peer)
@@ -220,7 +220,7 @@ def time_config(name: str, prompt: int, repeats: int, dyq_bases: list[str], bits
             "decoded_tokens": ACTION_TOKENS, "prefill_logits": "last position", "dyq_base_dtypes": dyq_bases,
             "timing": "interleaved: each repeat runs every model once, in a shuffled order",
             "step_ms": timings, "prefill_ms": prefill_ms, "dyq_gemm_share": shares, "step_breakdown_ms": breakdowns,
-            "dyq_kernel": kernels, "model_bytes": memory}
+            "dyq_kernel": kernels, "dyq_fused_norms": fused_norms, "model_bytes": memory}
 
 
 def main() -> None:
