@@ -8,7 +8,7 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 TESTS=(test_transformers_versions.py test_quantize_model.py test_hf_quantizer.py test_quantize_cli.py
        test_weight_methods.py test_rotation.py test_smoothing.py test_sim_policy.py test_sim_profile.py
-       test_sim_closed_loop.py test_demo.py test_export.py test_vla_backbones.py)
+       test_sim_closed_loop.py test_demo.py test_export.py test_vla_backbones.py test_rms_norm.py)
 
 # overlay VERSION PACKAGE...: build/transformers-VERSION with those packages (no dependencies), once.
 overlay() {
