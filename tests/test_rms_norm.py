@@ -293,3 +293,16 @@ def test_load_quantized_fuses_the_norms(tmp_path, rng):
     ids = torch.randint(0, 256, (1, 7), generator=rng)
     with torch.inference_mode():
         torch.testing.assert_close(loaded(ids).logits, model(ids).logits, rtol=0, atol=0)
+
+
+def test_a_norm_the_kernel_cannot_run_is_left_with_the_reason(monkeypatch):
+    """As on a GPU with a dyq built without its CUDA kernels: the probe's call fails, the norm stays."""
+    def no_kernel(*args):
+        raise NotImplementedError("Could not run 'dyq::rms_norm' with arguments from the 'CUDA' backend.\nmore")
+
+    monkeypatch.setattr(dyq.core.norm, "_RMS_NORM", no_kernel)
+    norm = llama(layers=1).model.norm
+    fused, left = fuse_rms_norms(norm)
+    assert fused == [] and type(norm).__name__ == "LlamaRMSNorm"
+    assert left["LlamaRMSNorm"] == ("dyq's rms_norm does not run on cpu: Could not run 'dyq::rms_norm' with "
+                                    "arguments from the 'CUDA' backend.")

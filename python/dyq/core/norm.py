@@ -99,7 +99,10 @@ def unfusable_reason(module: nn.Module) -> str | None:
     probe = _probe(weight)
     with torch.no_grad():
         expected = module(probe)
-        actual = _RMS_NORM(probe, weight.detach(), eps)
+        try:
+            actual = _RMS_NORM(probe, weight.detach(), eps)
+        except (NotImplementedError, RuntimeError) as error:  # a dyq built without its kernels for that device
+            return f"dyq's rms_norm does not run on {weight.device}: {str(error).splitlines()[0]}"
     if not isinstance(expected, torch.Tensor) or not _agrees(expected, actual):
         return "its output differs from the kernel's formula (weight * x / rms(x), rounded as LlamaRMSNorm rounds)"
     return None
