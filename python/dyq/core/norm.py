@@ -17,6 +17,7 @@ from __future__ import annotations
 import torch
 from torch import nn
 
+from . import reference
 from .linear import ACTIVATION_DTYPES
 
 _RMS_NORM = torch.ops.dyq.rms_norm.default
@@ -27,8 +28,8 @@ class DyQRMSNorm(nn.Module):
     """``weight * (x / sqrt(mean(x^2) + eps))`` over the last dimension, in float32 with the result of the
     normalization and the product each rounded to x's dtype (transformers' ``LlamaRMSNorm``), through
     ``torch.ops.dyq.rms_norm``. The parameter is ``weight`` ``[hidden_size]``, so a state dict of the layer it
-    replaces loads as it is. An input of another dtype than the weight's is computed by the same formula in
-    torch operations, with the type promotion of ``LlamaRMSNorm``.
+    replaces loads as it is. An input of another dtype than the weight's goes through the plain PyTorch
+    reference of the same formula (:func:`dyq.reference.rms_norm`), with the type promotion of ``LlamaRMSNorm``.
     """
 
     def __init__(self, hidden_size: int, eps: float = 1e-6, device=None, dtype: torch.dtype | None = None) -> None:
@@ -40,9 +41,7 @@ class DyQRMSNorm(nn.Module):
         weight = self._parameters["weight"]
         if x.dtype == weight.dtype:
             return _RMS_NORM(x, weight, self.eps)
-        h = x.float()
-        h = h * torch.rsqrt(h.pow(2).mean(-1, keepdim=True) + self.eps)
-        return weight * h.to(x.dtype)
+        return reference.rms_norm(x, weight, self.eps)  # the kernel takes one dtype; the formula promotes
 
     def extra_repr(self) -> str:
         return f"{self.weight.shape[0]}, eps={self.eps}, kernel=dyq.rms_norm"
