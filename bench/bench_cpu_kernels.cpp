@@ -8,16 +8,17 @@
 // Hot: M = 1, 16 and 256 on one copy of the weights. Prints a table (median wall time, and process CPU
 // time divided by the thread count, which stays meaningful on a shared machine).
 // Cold decode: M = 1 over as many copies of the weights as fill four times the last-level cache, called in
-// turn, as bandwidth (packed weights and scales over the time), against a streaming read of 1 GiB on as
-// many threads: the kernels' own share of the memory's speed, which bench_linear.py measures through torch
-// (its per-call costs included), and beside it the speed of the same call hot (timed earlier in the run, the
+// turn, as bandwidth (packed weights and scales over the time), against a streaming read of 1 GiB on as many
+// threads: the kernels' own share of the memory's speed, which bench_linear.py measures through torch (its
+// per-call costs included), and beside it the speed of the same call hot (timed earlier in the run, the
 // weights in the caches as far as they fit): where that is not well above the read, the kernel's own work per
 // byte limits the cold decode as much as the memory does (one core of the AMD EPYC). Each shape runs in
-// rounds: a read, then a stretch of calls of every width, in an order shuffled per round; a width's share is the median over the rounds of its speed over the
-// round's read, so that the drift of a shared machine reaches the read and the decode it is compared with
-// alike, and no width always runs first. (With one read before and after each shape and each width's calls
-// in one stretch, the one-thread shares of three runs on the AMD EPYC spread over 71 % to 94 % at the
-// integer widths; of five runs in rounds, over 78 % to 87 %.) Both tables go to the JSON.
+// rounds: a read, then a stretch of calls of every width, in an order shuffled per round; a width's share is
+// the median over the rounds of its speed over the round's read, so that the drift of a shared machine
+// reaches the read and the decode it is compared with alike, and no width always runs first. (With one read
+// before and after each shape and each width's calls in one stretch, the one-thread shares of three runs on
+// the AMD EPYC spread over 71 % to 94 % at the integer widths; of five runs in rounds, over 78 % to 87 %.)
+// Both tables go to the JSON.
 #include <sys/mman.h>
 #include <sys/resource.h>
 #include <unistd.h>
