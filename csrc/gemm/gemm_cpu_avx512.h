@@ -262,9 +262,11 @@ void group_products(const float* scales_row, int64_t groups, const DecodeRow* ro
 // `block_is_group` true where a block is one group (G = 128). Each combination runs in a loop of its own with
 // both known at compile time: with the branches on them inside one loop, GCC stored every accumulator to the
 // stack after every block (M = 1, one thread on the AMD EPYC, 4096 x 4096 in cache: the integer widths
-// 0.270 -> 0.25 ms, W4A16 0.34 -> 0.30 to 0.32 ms; cold, within the benchmark's spread).
+// 0.270 -> 0.25 ms, W4A16 0.34 -> 0.30 to 0.32 ms; cold, within the benchmark's spread). Always inlined: a
+// kernel that runs two loops of it (decode_int_kernel) otherwise got it out of line, with the accumulators
+// in memory behind the body's references.
 template <typename Body>
-void for_each_block(int64_t k, int group_size, Body&& body) {
+[[gnu::always_inline]] inline void for_each_block(int64_t k, int group_size, Body&& body) {
   const int64_t full_blocks = k / kBlockColumns;
   auto sweep = [&](auto block_is_group) {
     for (int64_t t = 0; t < full_blocks; ++t) body(t, std::true_type{}, block_is_group);
@@ -369,6 +371,17 @@ void store_lane_sums(const __m512 (&acc)[kCols][kRows], float* sums) {
   }
 }
 
+// One activation row against weight rows of at most this many groups of 128 (K <= 1024) forms each block's
+// s_w * s_x in the loop, one multiply per block and weight row, rather than storing them all before the
+// loop: on such short rows that set-up, and loading the products right after storing them, cost more than
+// the blocks' own work. M = 1, in cache, on the AMD EPYC (a C++ loop over dyq::cpu::gemm, one process, the
+// two forms alternating; outputs bit for bit the same; two runs), one thread: 768 x 256 1.47x to 1.75x
+// faster at A8 and 1.57x to 1.62x at A4, 256 x 768 1.06x to 1.09x and 1.14x to 1.21x, 4096 x 1024 1.07x to
+// 1.09x and 1.07x to 1.11x; two threads 1.17x to 1.22x, 1.03x to 1.17x and 1.07x to 1.10x. From K = 1536
+// the two forms tie, and an earlier form of the loop multiply lost 7 % to 10 % at K = 2048 and 4096; at two
+// activation rows and more, whose rows share each product, they tie on 768 x 256.
+constexpr int64_t kInlineProductMaxGroups = 8;
+
 // sums[c * kRows + r] = y[r] (without bias) of weight row c, for kCols consecutive weight rows (row c at
 // weight_rows + c * k / 2, its scales at scales_rows + c * groups) and kRows integer activation rows.
 template <int kRows, int kCols, bool kWideCodes>
@@ -377,9 +390,13 @@ void decode_int_kernel(const uint8_t* weight_rows, const float* scales_rows, int
   const int64_t groups = group_count(k, group_size);
   const int64_t pitch = sixteen_padded(groups);
   const int64_t row_bytes = k / 2;
-  float* products = scratch_floats(kCols * kRows * pitch);  // [c][r][group]
-  for (int c = 0; c < kCols; ++c) {
-    group_products<kRows>(scales_rows + c * groups, groups, rows, products + c * kRows * pitch, pitch);
+  const bool inline_products = kRows == 1 && group_size == kBlockColumns && groups <= kInlineProductMaxGroups;
+  float* products = nullptr;  // [c][r][group]
+  if (!inline_products) {
+    products = scratch_floats(kCols * kRows * pitch);
+    for (int c = 0; c < kCols; ++c) {
+      group_products<kRows>(scales_rows + c * groups, groups, rows, products + c * kRows * pitch, pitch);
+    }
   }
   // Lane i covers columns 8i..8i+7 of the block: group i * 8 / group_size of it.
   const __m512i lane_group = srli_epi32(
@@ -390,7 +407,7 @@ void decode_int_kernel(const uint8_t* weight_rows, const float* scales_rows, int
   for (auto& column : acc) {
     for (__m512& value : column) value = _mm512_setzero_ps();
   }
-  for_each_block(k, group_size, [&](int64_t t, auto full, auto block_is_group) __attribute__((always_inline)) {
+  auto block = [&](int64_t t, auto full, auto block_is_group, auto products_inline) __attribute__((always_inline)) {
     __m512i even[kCols], odd[kCols];
     [[maybe_unused]] __m512i both[kCols];
     for (int c = 0; c < kCols; ++c) {
@@ -415,13 +432,26 @@ void decode_int_kernel(const uint8_t* weight_rows, const float* scales_rows, int
         } else {
           dot = _mm512_dpbusd_epi32(_mm512_dpbusd_epi32(offsets, even[c], a_even), odd[c], a_odd);
         }
-        acc[c][r] = _mm512_fmadd_ps(cvtepi32_ps(dot),
-                                    block_lanes(products + (c * kRows + r) * pitch, t, block_is_group, full,
-                                                group_size, groups, lane_group),
-                                    acc[c][r]);
+        __m512 product;  // s_w * s_x of each lane's group
+        if constexpr (decltype(products_inline)::value && decltype(block_is_group)::value) {
+          product = _mm512_mul_ps(_mm512_set1_ps(scales_rows[c * groups + t]), _mm512_set1_ps(rows[r].scales[t]));
+        } else {
+          product = block_lanes(products + (c * kRows + r) * pitch, t, block_is_group, full, group_size, groups,
+                                lane_group);
+        }
+        acc[c][r] = _mm512_fmadd_ps(cvtepi32_ps(dot), product, acc[c][r]);
       }
     }
-  });
+  };
+  if (inline_products) {
+    for_each_block(k, group_size, [&](int64_t t, auto full, auto block_is_group) __attribute__((always_inline)) {
+      block(t, full, block_is_group, std::true_type{});
+    });
+  } else {
+    for_each_block(k, group_size, [&](int64_t t, auto full, auto block_is_group) __attribute__((always_inline)) {
+      block(t, full, block_is_group, std::false_type{});
+    });
+  }
   store_lane_sums<kRows, kCols>(acc, sums);
 }
 
