@@ -443,14 +443,15 @@ void decode_int_kernel(const uint8_t* weight_rows, const float* scales_rows, int
       }
     }
   };
+  auto sweep = [&](auto products_inline) __attribute__((always_inline)) {
+    for_each_block(k, group_size, [&](int64_t t, auto full, auto block_is_group) __attribute__((always_inline)) {
+      block(t, full, block_is_group, products_inline);
+    });
+  };
   if (inline_products) {
-    for_each_block(k, group_size, [&](int64_t t, auto full, auto block_is_group) __attribute__((always_inline)) {
-      block(t, full, block_is_group, std::true_type{});
-    });
+    sweep(std::true_type{});
   } else {
-    for_each_block(k, group_size, [&](int64_t t, auto full, auto block_is_group) __attribute__((always_inline)) {
-      block(t, full, block_is_group, std::false_type{});
-    });
+    sweep(std::false_type{});
   }
   store_lane_sums<kRows, kCols>(acc, sums);
 }
