@@ -749,7 +749,8 @@ struct ActivationTiles {
 };
 
 // Kind::row_words writes the words of row r of a tile, the kSteps dwords of quad q at words + q * quad_stride
-// (zero past k), and for VnniPanel its groups' z_x and s_x at zeros[g * pitch] and scales[g * pitch], with
+// (zero past k; a kind with kTileWords writes the whole tile's in tile_words instead), and for VnniPanel its
+// groups' z_x and s_x at zeros[g * pitch] and scales[g * pitch], with
 // this scratch; kinds with kGroupParams read the codes and parameters that activation_tiles has quantized
 // into it for the whole tile (quantize_activation_rows: the groups of several rows overlap there).
 // Kinds without quantization convert one row at a time and take no codes.
@@ -772,13 +773,13 @@ struct VnniPanel {
   static constexpr bool kWeightSums = true;
   static constexpr bool kScaledSteps = false;  // steps of the codes (scales in the epilogue)
   static constexpr bool kGroupParams = true;
+  static constexpr bool kTileWords = true;  // tile_words, then row_words for the parameters
   using Accumulator = __m512i;
   static const char* name() { return "vnni"; }
   static void steps(__m512i quad, __m512i* out) { split_weight_nibbles(quad, out[0], out[1]); }
   // Step 0 of a quad: the codes of its even columns, step 1 of its odd ones, in the order of the weight
   // nibbles (split_weight_nibbles). The codes of the whole tile at once (tile_words), then each row's
   // groups' parameters (row_words).
-  static constexpr bool kTileWords = true;
   // The words of one tile from the codes of its `rows` rows in the scratch (0 for the rows past them): per 8
   // quads (64 columns), each row's 64 codes, their bytes put in step order, are one row of an 8 x 8 matrix
   // of quadwords (a quad's two steps), which a transpose turns into the 8 quads' lines of the tile (one
@@ -853,6 +854,7 @@ struct Bf16Panel {
   static constexpr bool kWeightSums = false;
   static constexpr bool kScaledSteps = false;  // steps of the codes (scales in the epilogue)
   static constexpr bool kGroupParams = false;
+  static constexpr bool kTileWords = false;  // row_words writes each row's words
   using Accumulator = __m512;
   static const char* name() { return "bf16"; }
   static void steps(__m512i quad, __m512i* out) {
@@ -921,6 +923,7 @@ struct Fp32Panel {
   static constexpr bool kWeightSums = false;
   static constexpr bool kScaledSteps = false;  // steps of the codes (scales in the epilogue)
   static constexpr bool kGroupParams = false;
+  static constexpr bool kTileWords = false;  // row_words writes each row's words
   using Accumulator = __m512;
   static const char* name() { return "fp32"; }
   static void steps(__m512i quad, __m512i* out) {
@@ -946,12 +949,6 @@ struct Fp32Panel {
   }
 };
 
-// Whether Kind writes a tile's words at once (tile_words; row_words then writes a row's parameters only).
-template <typename Kind, typename = void>
-constexpr bool has_tile_words = false;
-template <typename Kind>
-constexpr bool has_tile_words<Kind, std::void_t<decltype(Kind::kTileWords)>> = Kind::kTileWords;
-
 // The m rows of x as ActivationTiles for the panels of Kind.
 template <typename Kind, typename Element>
 ActivationTiles activation_tiles(const Element* x, int64_t m, int64_t k, int group_size, int act_bits) {
@@ -970,7 +967,7 @@ ActivationTiles activation_tiles(const Element* x, int64_t m, int64_t k, int gro
         quantize_activation_rows(x + t * kPanelTileRows * k, rows, k, group_size, act_bits, scratch.rows.data(),
                                  scratch.codes.data(), scratch.codes_pitch, scratch.params.data());
       }
-      if constexpr (has_tile_words<Kind>) {
+      if constexpr (Kind::kTileWords) {  // the tile's words at once; row_words then the parameters only
         Kind::tile_words(scratch, rows, tiles.quads, tiles.words.data() + t * tiles.quads * kPanelTileRows * Kind::kSteps);
       }
       for (int r = 0; r < rows; ++r) {
