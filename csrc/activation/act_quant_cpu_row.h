@@ -266,10 +266,14 @@ inline GroupRange group_range(const float* v, int64_t columns) {
 }
 
 // The codes of 16 values: clamp(rne(x / s_x) + z_x, 0, L), x / s_x through the reciprocal (kByReciprocal)
-// or the division.
+// or the division. The quotient is converted to int32 rounding to nearest even, then z_x added and the clamp
+// taken on integers: the codes of rounding in fp32 and converting last, since a group's range sets its s_x,
+// so that |x / s_x| is at most about L, far inside int32. One conversion in place of a round and a
+// conversion, both on one port of Intel's cores: 256 rows of the policy's 256 x 256 and 256 x 768 layers
+// (W4A8, W4A4, W4A2 on the AMX tiles) 1.03x faster, one thread, alternating in one process.
 template <bool kByReciprocal>
-[[gnu::always_inline]] inline __m512i code_lanes(__m512 values, __m512 scale, __m512 reciprocal, __m512 zero_point,
-                                                 __m512 levels) {
+[[gnu::always_inline]] inline __m512i code_lanes(__m512 values, __m512 scale, __m512 reciprocal, __m512i zero_point,
+                                                 __m512i levels) {
   __m512 quotient;
   if constexpr (kByReciprocal) {
     const __m512 estimate = _mm512_mul_ps(values, reciprocal);
@@ -277,15 +281,15 @@ template <bool kByReciprocal>
   } else {
     quotient = _mm512_div_ps(values, scale);
   }
-  return cvtps_epi32(min_ps(max_ps(_mm512_add_ps(round_nearest_ps(quotient), zero_point), _mm512_setzero_ps()), levels));
+  return min_epi32(max_epi32(_mm512_add_epi32(cvt_nearest_epi32(quotient), zero_point), _mm512_setzero_si512()), levels);
 }
 
 // The group's constants are passed by value, so that they stay in registers: captured by reference in a
 // lambda, they were loaded again after every byte store (which may alias anything), and W4A8 calls of 256
 // rows of the policy's layers took 1.05x to 1.17x as long (one thread, alternating in one process).
 template <bool kByReciprocal>
-void store_group_codes(const float* v, int64_t columns, __m512 scale, __m512 reciprocal, __m512 zero_point,
-                       __m512 levels, uint8_t* codes) {
+void store_group_codes(const float* v, int64_t columns, __m512 scale, __m512 reciprocal, __m512i zero_point,
+                       __m512i levels, uint8_t* codes) {
   int64_t i = 0;
   for (; i + 16 <= columns; i += 16) {
     // vpmovdb to a register then a plain store: its masked store form is the slower one on Zen 4.
@@ -308,8 +312,8 @@ inline void group_codes(const float* v, int64_t columns, ActivationGroupParams p
   }
   const __m512 scale = _mm512_set1_ps(params.scale);
   const __m512 reciprocal = _mm512_set1_ps(1.0f / params.scale);
-  const __m512 zero_point = _mm512_set1_ps(static_cast<float>(params.zero));
-  const __m512 levels = _mm512_set1_ps(static_cast<float>((1 << act_bits) - 1));
+  const __m512i zero_point = _mm512_set1_epi32(static_cast<int>(params.zero));
+  const __m512i levels = _mm512_set1_epi32((1 << act_bits) - 1);
   if (quotient_by_reciprocal(params.scale)) {
     store_group_codes<true>(v, columns, scale, reciprocal, zero_point, levels, codes);
   } else {

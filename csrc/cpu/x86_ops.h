@@ -81,8 +81,11 @@ __m256i extracti64x4(__m512i a) {
 inline __m512i slli_epi32(__m512i a, unsigned int count) { return _mm512_maskz_slli_epi32(kAll16, a, count); }
 inline __m512i srli_epi32(__m512i a, unsigned int count) { return _mm512_maskz_srli_epi32(kAll16, a, count); }
 inline __m512i srai_epi32(__m512i a, unsigned int count) { return _mm512_maskz_srai_epi32(kAll16, a, count); }
+inline __m512i min_epi32(__m512i a, __m512i b) { return _mm512_maskz_min_epi32(kAll16, a, b); }
+inline __m512i max_epi32(__m512i a, __m512i b) { return _mm512_maskz_max_epi32(kAll16, a, b); }
+// int32 of each lane rounded to nearest even, whatever MXCSR's rounding mode.
 #define DYQ_AVX512_ROUND_NEAREST (_MM_FROUND_TO_NEAREST_INT | _MM_FROUND_NO_EXC)
-inline __m512 round_nearest_ps(__m512 a) { return _mm512_maskz_roundscale_ps(kAll16, a, DYQ_AVX512_ROUND_NEAREST); }
+inline __m512i cvt_nearest_epi32(__m512 a) { return _mm512_maskz_cvt_roundps_epi32(kAll16, a, DYQ_AVX512_ROUND_NEAREST); }
 #undef DYQ_AVX512_ROUND_NEAREST
 inline __m512i i32gather_epi32(__m512i index, const void* base) {
   return _mm512_mask_i32gather_epi32(_mm512_setzero_si512(), kAll16, index, base, 1);
