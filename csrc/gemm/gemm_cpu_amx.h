@@ -178,7 +178,10 @@ struct NativeTiles {
     for (int t = 0; t < 4; ++t) config.colsb[t] = 64, config.rows[t] = 16;
     for (int t = 4; t < 6; ++t) config.colsb[t] = static_cast<uint16_t>(step_bytes), config.rows[t] = 16;
     for (int t = 6; t < 8; ++t) config.colsb[t] = 64, config.rows[t] = static_cast<uint8_t>(step_bytes / 4);
-    _tile_loadconfig(&config);
+    // ldtilecfg through an operand of the whole 64 bytes: GCC 12's _tile_loadconfig declares a read of only
+    // its first 8, so that the compiler may drop the stores of the tiles' shapes before it, which it did once
+    // this was inlined into a benchmark (tilezero then raised SIGILL: no tile configured).
+    asm volatile("{ldtilecfg %0|ldtilecfg %0}" ::"m"(config));
   }
   // The intrinsics' macros paste their tile argument into the register name, so it must be a literal;
   // the asm below prints the template argument as one (%c) instead. Both dialects, as the macros have.
