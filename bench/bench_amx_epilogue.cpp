@@ -14,7 +14,9 @@
 // - + stores: and the C tiles' stores;
 // - + epilogue: and the epilogue, as the loop runs (both after the group's products are issued);
 // - epilogue alone: the epilogue without any tile work, per group;
-// and the rate of independent 512-bit multiply-adds (no tiles): the vector work the epilogue's time follows.
+// and the rate of independent 512-bit multiply-adds (no tiles): the vector work the epilogue's time follows;
+// and as many multiply-adds as the epilogue's vector operations beside tile products that read no memory,
+// 512-bit and 256-bit, against either alone: how much vector work the CPU runs while the tiles multiply.
 // All run in one process, alternating over rounds (the Xeon with AMX measured moved 2x to 3x between states
 // within minutes); the table and the JSON give the median of the rounds.
 #define DYQ_CPU_ISA_AVX512_AMX 1
@@ -26,6 +28,7 @@
 #include <memory>
 #include <random>
 #include <string>
+#include <utility>
 #include <vector>
 
 #include "bench_util.h"
@@ -134,8 +137,60 @@ __attribute__((noinline)) double fma_per_ns(int64_t iterations) {
   return 12.0 * static_cast<double>(iterations) / ns;
 }
 
+// Multiply-adds beside the tile products, whatever their width: 16 independent chains of 512-bit (Zmm) or
+// 256-bit (Ymm) vectors, per round kOps of them, with kTiles also 8 tile products on operands already in the
+// tiles (the four C tiles twice each, as a group of the loop takes them). ns per round. On the Xeon with AMX
+// measured, the tile products leave one of the two 512-bit ports to the vector work (docs/cpu_performance.md).
+struct Zmm {
+  using Vector = __m512;
+  static Vector start(int i) { return _mm512_set1_ps(1.0f + 1e-7f * static_cast<float>(i)); }
+  static Vector step(Vector v) { return _mm512_fmadd_ps(v, _mm512_set1_ps(0.9999999f), _mm512_set1_ps(1e-9f)); }
+};
+struct Ymm {
+  using Vector = __m256;
+  static Vector start(int i) { return _mm256_set1_ps(1.0f + 1e-7f * static_cast<float>(i)); }
+  static Vector step(Vector v) { return _mm256_fmadd_ps(v, _mm256_set1_ps(0.9999999f), _mm256_set1_ps(1e-9f)); }
+};
+
+template <typename Width, int kOps, bool kTiles>
+__attribute__((noinline)) double beside_tiles_ns(amx::NativeTiles& tiles, int64_t rounds) {
+  constexpr int kChains = 16;
+  typename Width::Vector chains[kChains];
+  for (int c = 0; c < kChains; ++c) chains[c] = Width::start(c);
+  const auto start = std::chrono::steady_clock::now();
+  for (int64_t r = 0; r < rounds; ++r) {
+    if constexpr (kTiles) {
+      for (int twice = 0; twice < 2; ++twice) {
+        tiles.dpbsud<0, 4, 6>();
+        tiles.dpbsud<2, 5, 6>();
+        tiles.dpbsud<1, 4, 7>();
+        tiles.dpbsud<3, 5, 7>();
+      }
+    }
+#pragma GCC unroll 64
+    for (int i = 0; i < kOps / kChains; ++i) {
+#pragma GCC unroll 16
+      for (int c = 0; c < kChains; ++c) chains[c] = Width::step(chains[c]);
+    }
+    // Keeps the chains in registers and the loop from being folded.
+#pragma GCC unroll 16
+    for (int c = 0; c < kChains; ++c) asm volatile("" : "+v"(chains[c]));
+  }
+  return std::chrono::duration<double, std::nano>(std::chrono::steady_clock::now() - start).count() /
+         static_cast<double>(rounds);
+}
+
+// The tile products alone, the multiply-adds alone and both in one loop, ns per round of 8 products.
+struct Beside {
+  double tiles, vectors, both;
+};
+
+// As many multiply-adds per 8 tile products as the epilogue's vector operations at G = 128: 256 of 16 floats.
+constexpr int kBesideZmmOps = 256, kBesideYmmOps = 512;
+
 struct Medians {
   double products, stores, epilogue, alone, fma;
+  Beside zmm, ymm;
 };
 
 constexpr int kRounds = 15;
@@ -145,15 +200,32 @@ Medians time_parts(Operands& o) {
   tiles.configure(kStepBytes);
   constexpr int kPasses = 400;
   std::vector<double> products, stores, epilogue, alone, fma;
+  std::vector<double> beside[2][3];  // [zmm, ymm][tiles, vectors, both]
+  constexpr int64_t kBesideRounds = 100000;
   for (int round = 0; round < kRounds; ++round) {
     products.push_back(ns_per_product<Variant::kProducts>(tiles, o, kPasses));
     stores.push_back(ns_per_product<Variant::kStores>(tiles, o, kPasses));
     epilogue.push_back(ns_per_product<Variant::kEpilogue>(tiles, o, kPasses));
     alone.push_back(epilogue_ns_per_group(o, kPasses));
     fma.push_back(fma_per_ns(2000000));
+    // Operands in the tiles: the products of the rounds below read no memory.
+    tiles.load<4>(o.panel, kStepBytes);
+    tiles.load<5>(o.panel + kTileBytes, kStepBytes);
+    tiles.load<6>(o.b_tiles[0], 64);
+    tiles.load<7>(o.b_tiles[0] + kTileBytes, 64);
+    beside[0][0].push_back(beside_tiles_ns<Zmm, 0, true>(tiles, kBesideRounds));
+    beside[0][1].push_back(beside_tiles_ns<Zmm, kBesideZmmOps, false>(tiles, kBesideRounds));
+    beside[0][2].push_back(beside_tiles_ns<Zmm, kBesideZmmOps, true>(tiles, kBesideRounds));
+    beside[1][0].push_back(beside_tiles_ns<Ymm, 0, true>(tiles, kBesideRounds));
+    beside[1][1].push_back(beside_tiles_ns<Ymm, kBesideYmmOps, false>(tiles, kBesideRounds));
+    beside[1][2].push_back(beside_tiles_ns<Ymm, kBesideYmmOps, true>(tiles, kBesideRounds));
   }
   tiles.release();
-  return {median(products), median(stores), median(epilogue), median(alone), median(fma)};
+  auto beside_medians = [&](int width) {
+    return Beside{median(beside[width][0]), median(beside[width][1]), median(beside[width][2])};
+  };
+  return {median(products), median(stores), median(epilogue), median(alone), median(fma), beside_medians(0),
+          beside_medians(1)};
 }
 
 }  // namespace
@@ -193,6 +265,13 @@ int main(int argc, char** argv) {
               kRounds, "products", products_ns, "+ C tile stores", stores_ns, "+ epilogue (the loop)", epilogue_ns,
               "epilogue alone", alone_ns, alone_ns / kProductsPerGroup, "512-bit multiply-adds", fma_rate,
               kEpilogueVectorOps, kEpilogueVectorOps / fma_rate);
+  std::printf("\nMultiply-adds beside the tile products (operands in the tiles), ns per 8 products and 4096 lanes of "
+              "multiply-adds\n%-10s %10s %10s %10s %12s\n",
+              "width", "tiles", "vectors", "both", "both / sum");
+  const std::pair<const char*, Beside> widths[] = {{"512-bit", r.zmm}, {"256-bit", r.ymm}};
+  for (const auto& [name, b] : widths) {
+    std::printf("%-10s %10.2f %10.2f %10.2f %12.2f\n", name, b.tiles, b.vectors, b.both, b.both / (b.tiles + b.vectors));
+  }
   FILE* json = std::fopen(json_path, "w");
   if (json == nullptr) return 1;
   std::fprintf(json,
@@ -201,9 +280,13 @@ int main(int argc, char** argv) {
                "\"statistic\": \"median over the rounds\", \"products_ns_per_product\": %.3f, "
                "\"with_stores_ns_per_product\": %.3f, \"with_epilogue_ns_per_product\": %.3f, "
                "\"epilogue_alone_ns_per_group\": %.3f, \"tile_products_per_group\": %g, "
-               "\"epilogue_vector_ops_per_group\": %g, \"fma512_per_ns\": %.3f}\n",
+               "\"epilogue_vector_ops_per_group\": %g, \"fma512_per_ns\": %.3f, "
+               "\"beside_tiles\": {\"products_per_round\": 8, \"lanes_per_round\": 4096, "
+               "\"512-bit\": {\"ops_per_round\": %d, \"tiles_ns\": %.3f, \"vectors_ns\": %.3f, \"both_ns\": %.3f}, "
+               "\"256-bit\": {\"ops_per_round\": %d, \"tiles_ns\": %.3f, \"vectors_ns\": %.3f, \"both_ns\": %.3f}}}\n",
                dyq::bench::cpu_model().c_str(), __VERSION__, kRounds, products_ns, stores_ns, epilogue_ns, alone_ns,
-               kProductsPerGroup, kEpilogueVectorOps, fma_rate);
+               kProductsPerGroup, kEpilogueVectorOps, fma_rate, kBesideZmmOps, r.zmm.tiles, r.zmm.vectors, r.zmm.both,
+               kBesideYmmOps, r.ymm.tiles, r.ymm.vectors, r.ymm.both);
   std::fclose(json);
   return 0;
 }
