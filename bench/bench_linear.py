@@ -15,7 +15,8 @@ brings back what the others evicted. Decode (M = 1, cold) is the exception: a ba
 one layer's calls after another's, as a decode streams the weights of one layer after another's (in turns with
 the other layers' cold reads between its calls, W4A8 on 4096 x 4096 took 9 % longer on the AMD EPYC); only
 dyq's widths, which read the same copies, take turns there (every copy bound to one PrecisionFlag, whose one
-write sets the width). M = 1 is timed over four times the repeats of the others, which the larger M divide by
+write sets the width), each timed call after two untimed ones of its own width, as a control step runs all its
+layers at one width. M = 1 is timed over four times the repeats of the others, which the larger M divide by
 three from 64 rows on; short calls get more, until each layer's timed calls add up to 0.1 s (at most 1000
 rounds). The same run measures the machine's streaming-read bandwidth (a sum over 1 GiB at the same thread
 count, on huge pages as dyq's packed weights are), once per thread count and again right before and after each
@@ -69,6 +70,11 @@ DECODE_REPEAT_FACTOR = 4
 # integer widths, which run one kernel, up to a quarter apart (256 x 256, M = 16, one thread, cold).
 MIN_SECONDS_PER_CANDIDATE = 0.1
 MAX_ROUNDS = 1000
+# Decode's timed call of a width follows this many untimed calls of the same width (on the next copies):
+# a decode runs a whole control step's layers at one width, and on the Xeon with AMX a call right after
+# one of another width paid for the switch (W4A8 on 4096 x 4096, two threads, cold: 0.52 ms after a
+# W4A16 call or one of it, 0.40 to 0.41 after two or four of its own, 0.38 in a loop of its own).
+DECODE_SAME_WIDTH_CALLS = 2
 
 
 def policy_shapes() -> list[tuple[int, int]]:
@@ -194,12 +200,19 @@ def time_shape(n: int, k: int, batches, modes, repeats: int, cache_bytes: int, b
             reps = repeats * DECODE_REPEAT_FACTOR if m == 1 else max(5, repeats // 3) if m >= 64 else repeats
             peer_calls = {name: (lambda rotation=rotation, inputs=x.to(dtype): rotation(inputs))
                           for name, (rotation, dtype) in rotations.items()}
-            width_calls = {f"w4a{bits}": (lambda bits=bits: setattr(flag, "bits", bits), lambda: dyq_rotation(x))
+            decode = cold and m == 1
+            same_width_calls = DECODE_SAME_WIDTH_CALLS if decode else 0
+
+            def set_width(bits: int) -> None:
+                flag.bits = bits
+                for _ in range(same_width_calls):
+                    dyq_rotation(x)
+
+            width_calls = {f"w4a{bits}": (lambda bits=bits: set_width(bits), lambda: dyq_rotation(x))
                            for bits in BITS}
             kernels = {f"w4a{bits}": dyq.cpu_gemm_kernel(m, k, GROUP_SIZE, bits) for bits in BITS}
             # Decode's bandwidth share is taken against a streaming read timed right before and after it: on
             # a shared machine the bandwidth moves within a run (the run-level read stays too).
-            decode = cold and m == 1
             stream_around = [stream_read_gbps(STREAM_REPEATS_AROUND)] if decode else []
             with torch.inference_mode():
                 if decode:
@@ -320,7 +333,8 @@ def main() -> None:
                "group_size": GROUP_SIZE, "peers": PEERS + (list(BITSANDBYTES_PEERS) if args.bitsandbytes else []),
                "bitsandbytes": bitsandbytes_version() if args.bitsandbytes else None,
                "timing": "interleaved: each round calls every layer once, in a shuffled order; hot calls each "
-                         "after an untimed one; M = 1 cold one peer after another, dyq's widths in turns",
+                         "after an untimed one; M = 1 cold one peer after another, dyq's widths in turns, each "
+                         f"timed call after {DECODE_SAME_WIDTH_CALLS} untimed ones of its width",
                "runs": runs}
     path = write_json(args.out, payload)
     print(f"\nwrote {path}")
