@@ -217,12 +217,13 @@ DecodeActivations decode_activations(const Element* x, int64_t m, int64_t k, int
 // 11008 x 4096): the rows kernels' sweep at least 16 KiB ahead rather than just over the next rows' bytes
 // (8 KiB at K = 4096) took W4A8 from 23.5-24.8 to 26.4-28.5 GB/s, and W4A16's single stream 8 KiB ahead
 // rather than 4 from 19-20 to 20.5-21 GB/s, about the streaming read's 24-26 GB/s in the same loop.
-// The sweep's distance and level were the Xeon's too once its memory read 27 to 30 GB/s on two threads: into
-// L2 at least 16 KiB ahead rather than into L1 over the next rows' bytes, W4A8 on two threads went from 26.9 to
-// 29.7 GB/s on 4096 x 4096, 26.1 to 28.5 on 11008 x 4096 and 26.8 to 30.4 on 4096 x 11008, on one thread from
-// 14.0 to 15.5, 13.9 to 15.0 and 13.2 to 15.2 (C++ loop, cold, the two forms alternating in one process; into
-// L2 over the next rows' bytes alone gave most of it); W4A16's sweep (K = 4096) 20.9 to 23.0 GB/s. Its single
-// stream (K = 11008) stayed fastest 2 KiB ahead into L1: 8 KiB into L2 took it from 24.5 to 21.9 GB/s.
+// The sweep takes that distance and level on the Xeon with AMX too, measured once its memory read 27 to 30
+// GB/s on two threads: into L2 at least 16 KiB ahead rather than into L1 over the next rows' bytes, W4A8 on
+// two threads went from 26.9 to 29.7 GB/s on 4096 x 4096, 26.1 to 28.5 on 11008 x 4096 and 26.8 to 30.4 on
+// 4096 x 11008, on one thread from 14.0 to 15.5, 13.9 to 15.0 and 13.2 to 15.2 (C++ loop, cold, the two forms
+// alternating in one process; into L2 over the next rows' bytes alone gave most of it); W4A16's sweep (K =
+// 4096) 20.9 to 23.0 GB/s. Its single stream (K = 11008) stayed fastest 2 KiB ahead into L1: 8 KiB into L2
+// took it from 24.5 to 21.9 GB/s.
 constexpr int64_t kSweepAheadBytes = 16384;
 constexpr _mm_hint kSweepHint = _MM_HINT_T1;
 #if defined(DYQ_AVX512_HAS_AMX)
@@ -321,7 +322,7 @@ template <int kCols>
     prefetch_weights(weight_rows + t * (kBlockColumns / 2));
   } else {
     prefetch_next_rows<kSweepHint, kSweepAheadBytes>(weight_rows, kCols * row_bytes,
-                                                              (t * kCols + c) * (kBlockColumns / 2));
+                                                     (t * kCols + c) * (kBlockColumns / 2));
   }
 }
 
