@@ -72,8 +72,8 @@ MIN_SECONDS_PER_CANDIDATE = 0.1
 MAX_ROUNDS = 1000
 # Decode's timed call of a width follows this many untimed calls of the same width (on the next copies):
 # a decode runs a whole control step's layers at one width, and on the Xeon with AMX a call right after
-# one of another width paid for the switch (W4A8 on 4096 x 4096, two threads, cold: 0.52 ms after a
-# W4A16 call or one of it, 0.40 to 0.41 after two or four of its own, 0.38 in a loop of its own).
+# one of another width paid for the switch (W4A8 on 4096 x 4096, two threads, cold: 0.52 ms right after
+# a W4A16 call and still after one call of its own, 0.40 to 0.41 after two or four, 0.38 in a loop of its own).
 DECODE_SAME_WIDTH_CALLS = 2
 
 
