@@ -237,10 +237,10 @@ constexpr _mm_hint kWeightPrefetchHint = _MM_HINT_T1;
 // The prefetch helpers are always inlined: a prefetch has no effect GCC can see, so a helper left out of line
 // is taken for a function without side effects, and its calls are deleted (the row kernels' loops of
 // for_each_block lost every prefetch that way, and W4A16's cold decode half its speed).
+template <bool kInOrder = false>
 [[gnu::always_inline]] inline void prefetch_weights(const uint8_t* packed) {
   // An address, not a pointer into the weights: it may lie past their end.
-  _mm_prefetch(reinterpret_cast<const char*>(reinterpret_cast<uintptr_t>(packed) + kWeightPrefetchBytes),
-               kWeightPrefetchHint);
+  prefetch_line<kWeightPrefetchHint, kInOrder>(reinterpret_cast<uintptr_t>(packed) + kWeightPrefetchBytes);
 }
 
 inline void offset_weight_nibbles(const uint8_t* packed, __mmask64 bytes, bool full, __m512i& even, __m512i& odd) {
@@ -315,14 +315,15 @@ inline int64_t sixteen_padded(int64_t count) { return (count + 15) / 16 * 16; }
 
 // The prefetch that goes with reading block t of weight row c in a row kernel over kCols weight rows: one
 // row is one stream, prefetched kWeightPrefetchBytes ahead; several rows, one sweep in memory order over
-// the bytes after the call's own rows, at least kSweepAheadBytes ahead of the sweep's start.
-template <int kCols>
+// the bytes after the call's own rows, at least kSweepAheadBytes ahead of the sweep's start. kInOrder:
+// issued where the call stands in the kernel's code (prefetch_line).
+template <int kCols, bool kInOrder = false>
 [[gnu::always_inline]] inline void prefetch_block(const uint8_t* weight_rows, int64_t row_bytes, int64_t t, int c) {
   if constexpr (kCols == 1) {
-    prefetch_weights(weight_rows + t * (kBlockColumns / 2));
+    prefetch_weights<kInOrder>(weight_rows + t * (kBlockColumns / 2));
   } else {
-    prefetch_next_rows<kSweepHint, kSweepAheadBytes>(weight_rows, kCols * row_bytes,
-                                                     (t * kCols + c) * (kBlockColumns / 2));
+    prefetch_next_rows<kSweepHint, kSweepAheadBytes, kInOrder>(weight_rows, kCols * row_bytes,
+                                                               (t * kCols + c) * (kBlockColumns / 2));
   }
 }
 
@@ -646,7 +647,16 @@ Bf16DecodeActivations bf16_decode_activations(const Element* x, int64_t m, int64
 // against 1.47 ms at K = 16384 and 6.0 against 2.5 ms at K = 28672 (a third of the read's speed). At K =
 // 4096 and below they tied cold (0.36 ms), and in cache several rows were faster: the policy's 768 x 256
 // at M = 1 in 8 against 10 us, 4096 x 4096 at M = 2 to 4 by 10 % to 17 %.
+// On the Xeon with AMX (48 KiB of L1), with each row's prefetch in its place (bf16_decode_kernel), several
+// rows a call were as fast or faster at every K (M = 1, cold, C++ loop, the forms in turns): 4096 x 8192
+// 27.2 against 25.1 GB/s on two threads, 4096 x 11008 31.6 against 30.3 and on one thread 16.0 against
+// 13.4; from K = 13824 to 28672 within 2 % of one row a call (4096 x 16384 on two threads 29.1 against
+// 30.7); in cache 4096 x 4096 0.446 against 0.481 ms on one thread.
+#if defined(DYQ_AVX512_HAS_AMX)
+inline bool bf16_decode_shares_activations(int64_t) { return true; }
+#else
 inline bool bf16_decode_shares_activations(int64_t k) { return k <= 4096 || k > 12288; }
+#endif
 
 // sums[c * kRows + r] = y[r] (without bias) of weight row c, for kCols consecutive weight rows (row c at
 // weight_row + c * k / 2, its scales at scales_row + c * groups) and kRows bf16 activation rows.
@@ -661,6 +671,14 @@ void bf16_decode_kernel(const uint8_t* weight_row, const float* scales_row, int6
   const __m512i low_nibble = _mm512_set1_epi16(0x000F);
   const __m512i exponent_and_flip = _mm512_set1_epi16(0x4308);  // 2^7, and u = nibble XOR 8
   const __mmask64 tail_bytes = (__mmask64{1} << ((k % kBlockColumns) / 2)) - 1;
+  // One activation row computes faster than the memory streams, and GCC 12 gathered a block's four prefetches
+  // at the top of the loop, ahead of the rows' loads: issued each right before its row's load, the cold
+  // decode on the Xeon with AMX (M = 1, C++ loop, the builds alternating in turns) took 4096 x 4096 from 21.0
+  // to 29.0 GB/s on two threads and 10.8 to 15.0 on one, 11008 x 4096 on one from 10.6 to 14.3, 4096 x 13824
+  // on two from 21.1 to 28.7; in cache 4096 x 4096 took 0.237 against 0.229 ms, and the policy's layers tied.
+  // With two activation rows, bound by their products, the order cost 4 % (0.470 against 0.452 ms): there
+  // GCC keeps its own.
+  constexpr bool kPrefetchInOrder = kRows == 1;
   __m512 acc[kCols * kRows];  // [c][r]
   for (int i = 0; i < kCols * kRows; ++i) acc[i] = _mm512_setzero_ps();
   for_each_block(k, group_size, [&](int64_t t, auto full, auto block_is_group) __attribute__((always_inline)) {
@@ -668,11 +686,16 @@ void bf16_decode_kernel(const uint8_t* weight_row, const float* scales_row, int6
     __m512 scale[kCols];
     for (int c = 0; c < kCols; ++c) {
       const uint8_t* packed = weight_row + c * row_bytes + t * (kBlockColumns / 2);
-      prefetch_block<kCols>(weight_row, row_bytes, t, c);
+      prefetch_block<kCols, kPrefetchInOrder>(weight_row, row_bytes, t, c);
       // Past k the weights do not matter: the activations there are zero.
       __m512i words = full ? _mm512_loadu_si512(packed) : _mm512_maskz_loadu_epi8(tail_bytes, packed);
       // One load in a register: GCC otherwise folds it into each shift, loading the 64 bytes four times.
-      asm("" : "+v"(words));
+      // Volatile where the prefetches are, so that each row's load stays right after its prefetch.
+      if constexpr (kPrefetchInOrder) {
+        asm volatile("" : "+v"(words));
+      } else {
+        asm("" : "+v"(words));
+      }
       // (shifted & 0xF) ^ 0x4308 is ternary logic 0x6A on (shifted, low_nibble, exponent_and_flip).
       weights[c][0] = _mm512_ternarylogic_epi32(words, low_nibble, exponent_and_flip, 0x6A);
       weights[c][1] = _mm512_ternarylogic_epi32(_mm512_srli_epi16(words, 4), low_nibble, exponent_and_flip, 0x6A);
