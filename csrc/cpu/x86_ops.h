@@ -35,9 +35,8 @@ float reduce_lanes(__m256 v) {
 // A prefetch of the line at `address` (which may lie past the data: a prefetch does not fault). kInOrder
 // writes it as a volatile asm statement, which the compiler keeps in its place among the kernel's other
 // volatile statements rather than gathering the prefetches of a loop's iteration at its top, as GCC 12 did
-// with W4A16's row kernel over four weight rows: there, each row's prefetch issued right before that row's
-// load took the cold decode on the Xeon with AMX from 21 to 28.6 GB/s on two threads (4096 x 4096, M = 1,
-// C++ loop, the two builds alternating), with the same instructions in another order.
+// with W4A16's row kernel over four weight rows (bf16_decode_kernel in gemm/gemm_cpu_avx512.h says what
+// that cost).
 template <_mm_hint kHint, bool kInOrder = false>
 [[gnu::always_inline]] inline void prefetch_line(uintptr_t address) {
   if constexpr (!kInOrder) {

@@ -651,7 +651,8 @@ Bf16DecodeActivations bf16_decode_activations(const Element* x, int64_t m, int64
 // rows a call were as fast or faster at every K (M = 1, cold, C++ loop, the forms in turns): 4096 x 8192
 // 27.2 against 25.1 GB/s on two threads, 4096 x 11008 31.6 against 30.3 and on one thread 16.0 against
 // 13.4; from K = 13824 to 28672 within 2 % of one row a call (4096 x 16384 on two threads 29.1 against
-// 30.7); in cache 4096 x 4096 0.446 against 0.481 ms on one thread.
+// 30.7); in cache 4096 x 4096 0.446 against 0.481 ms on one thread. At M = 2 to 4 on 4096 x 11008 and 4096 x
+// 8192, which took one row a call before, as fast or faster (M = 2, one thread: 2.35 against 2.83-2.97 ms).
 #if defined(DYQ_AVX512_HAS_AMX)
 inline bool bf16_decode_shares_activations(int64_t) { return true; }
 #else
