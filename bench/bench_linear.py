@@ -4,7 +4,8 @@ Peers: torch's fp32 and bf16 ``nn.Linear`` (oneDNN), its INT4 weight-only kernel
 (``_weight_int4pack_mm_for_cpu``, bf16 input, group 128) and its dynamic INT8 linear
 (``torch.ao.quantization.quantize_dynamic``, fp32 input); with ``--bitsandbytes``, bitsandbytes' NF4 and
 LLM.int8() layers too (bf16 and fp16 input; bench/bitsandbytes_peers.py), whose CPU path is many times slower than
-the others. dyq takes fp32 input, group 128.
+the others. dyq takes bf16 input, as the layers of a bf16 model do and as the bf16 peer does (its outputs
+then bf16 too; ``--dtype float32`` gives it fp32 input and outputs, twice the bytes of both), group 128.
 
 Each (shape, M) is timed hot (one copy of the weights, resident in the caches as far as they fit) and cold (as
 many copies as fill four times the last-level cache, called in turn, so that every call reads its weights from
@@ -178,7 +179,8 @@ def peer_layers(linear: torch.nn.Linear, bitsandbytes: bool = False) -> dict:
     return peers
 
 
-def time_shape(n: int, k: int, batches, modes, repeats: int, cache_bytes: int, bitsandbytes: bool = False) -> list[dict]:
+def time_shape(n: int, k: int, batches, modes, repeats: int, cache_bytes: int, bitsandbytes: bool = False,
+               dyq_dtype: torch.dtype = torch.bfloat16) -> list[dict]:
     torch.manual_seed(0)
     linear = torch.nn.Linear(k, n, bias=False)
     peers = peer_layers(linear, bitsandbytes)
@@ -197,6 +199,7 @@ def time_shape(n: int, k: int, batches, modes, repeats: int, cache_bytes: int, b
             copied.bind_flag(flag)
         for m in batches:
             x = torch.randn(m, k)
+            dyq_input = x.to(dyq_dtype)
             reps = repeats * DECODE_REPEAT_FACTOR if m == 1 else max(5, repeats // 3) if m >= 64 else repeats
             peer_calls = {name: (lambda rotation=rotation, inputs=x.to(dtype): rotation(inputs))
                           for name, (rotation, dtype) in rotations.items()}
@@ -206,9 +209,9 @@ def time_shape(n: int, k: int, batches, modes, repeats: int, cache_bytes: int, b
             def set_width(bits: int) -> None:
                 flag.bits = bits
                 for _ in range(same_width_calls):
-                    dyq_rotation(x)
+                    dyq_rotation(dyq_input)
 
-            width_calls = {f"w4a{bits}": (lambda bits=bits: set_width(bits), lambda: dyq_rotation(x))
+            width_calls = {f"w4a{bits}": (lambda bits=bits: set_width(bits), lambda: dyq_rotation(dyq_input))
                            for bits in BITS}
             kernels = {f"w4a{bits}": dyq.cpu_gemm_kernel(m, k, GROUP_SIZE, bits) for bits in BITS}
             # Decode's bandwidth share is taken against a streaming read timed right before and after it: on
@@ -296,6 +299,8 @@ def main() -> None:
     parser.add_argument("--modes", nargs="+", choices=["hot", "cold"], default=["hot", "cold"])
     parser.add_argument("--repeats", type=int, default=15)
     parser.add_argument("--out", default="linear_cpu.json")
+    parser.add_argument("--dtype", choices=["bfloat16", "float32"], default="bfloat16",
+                        help="dyq's input (and output) dtype; the peers keep theirs")
     parser.add_argument("--readme", metavar="JSON", help="print the README's table from a results file, then exit")
     parser.add_argument("--bitsandbytes", action="store_true",
                         help="also time bitsandbytes' NF4 and LLM.int8() layers (slow on the CPU)")
@@ -320,7 +325,8 @@ def main() -> None:
         load_before = os.getloadavg()
         stream_gbps = stream_read_gbps(args.repeats)
         results = [r for n, k in shapes
-                   for r in time_shape(n, k, batches, args.modes, args.repeats, cache_bytes, args.bitsandbytes)]
+                   for r in time_shape(n, k, batches, args.modes, args.repeats, cache_bytes, args.bitsandbytes,
+                                       getattr(torch, args.dtype))]
         print_results(threads, stream_gbps, results)
         load_after = os.getloadavg()
         print(f"load average (1, 5, 15 min): {load_before} before, {load_after} after")
@@ -330,7 +336,8 @@ def main() -> None:
     payload = {"benchmark": "linear_cpu", "environment": {**environment(), "cpu_flags": cpu_flags(),
                                                           "last_level_cache_bytes": cache_bytes,
                                                           "dyq_cpu_paths": dyq.cpu_info()["runnable"]},
-               "group_size": GROUP_SIZE, "peers": PEERS + (list(BITSANDBYTES_PEERS) if args.bitsandbytes else []),
+               "group_size": GROUP_SIZE, "dyq_input_dtype": args.dtype,
+               "peers": PEERS + (list(BITSANDBYTES_PEERS) if args.bitsandbytes else []),
                "bitsandbytes": bitsandbytes_version() if args.bitsandbytes else None,
                "timing": "interleaved: each round calls every layer once, in a shuffled order; hot calls each "
                          "after an untimed one; M = 1 cold one peer after another, dyq's widths in turns, each "

@@ -26,6 +26,7 @@ def test_bench_linear_times_every_peer_and_width(tmp_path):
               "--repeats", "2", "--out", str(out))
     result = json.loads(out.read_text())
     assert result["environment"]["cpu_isa"] == dyq.cpu_info()["isa"]
+    assert result["dyq_input_dtype"] == "bfloat16"
     (run,) = result["runs"]
     assert run["threads"] == 1 and run["stream_read_gbps"] > 0
     assert [(r["m"], r["n"], r["k"], r["mode"]) for r in run["results"]] == [(1, 256, 512, "hot"), (8, 256, 512, "hot")]
