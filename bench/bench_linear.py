@@ -11,8 +11,8 @@ Each (shape, M) is timed hot (one copy of the weights, resident in the caches as
 many copies as fill four times the last-level cache, called in turn, so that every call reads its weights from
 memory). The layers of one (shape, M, mode) are timed in turns, each round calling every one once in its own
 shuffled order, so that each ratio compares calls made under the same conditions of a shared machine and no
-layer always follows the same other one; hot, each timed call follows an untimed one of the same layer, which
-brings back what the others evicted. Decode (M = 1, cold) is the exception: a bandwidth measurement, it times
+layer always follows the same other one; hot, each timed call follows two untimed ones of the same layer, which
+bring back what the others evicted. Decode (M = 1, cold) is the exception: a bandwidth measurement, it times
 one layer's calls after another's, as a decode streams the weights of one layer after another's (in turns with
 the other layers' cold reads between its calls, W4A8 on 4096 x 4096 took 9 % longer on the AMD EPYC); only
 dyq's widths, which read the same copies, take turns there (every copy bound to one PrecisionFlag, whose one
@@ -76,6 +76,12 @@ MAX_ROUNDS = 1000
 # one of another width paid for the switch (W4A8 on 4096 x 4096, two threads, cold: 0.52 ms right after
 # a W4A16 call and still after one call of its own, 0.40 to 0.41 after two or four, 0.38 in a loop of its own).
 DECODE_SAME_WIDTH_CALLS = 2
+# Hot, each timed call follows this many untimed ones of its own layer. One was not enough on the Xeon with
+# AMX, whose last-level cache does not keep everything that passes through it: after torch's fp32 layer of
+# 11008 x 4096 had swept its 180 MB, W4A4 at 16 rows took 1.79, 1.62, then 1.27 ms over its next three calls
+# (1.21 in a loop of its own), so that a width's median moved with how often its turn followed that layer,
+# and W4A2 came out up to 1.4x slower than W4A4, the same kernel, in the rows of both 11008-wide shapes.
+HOT_REWARM_CALLS = 2
 
 
 def policy_shapes() -> list[tuple[int, int]]:
@@ -229,9 +235,10 @@ def time_shape(n: int, k: int, batches, modes, repeats: int, cache_bytes: int, b
                                                          max_repeats=max(reps, MAX_ROUNDS)))
                 else:
                     # In turns, so that every ratio compares calls made under the same conditions; hot calls
-                    # each after an untimed one of their own, as the other layers' calls evicted their weights.
+                    # each after HOT_REWARM_CALLS untimed ones of their own, as the other layers evicted their weights.
                     candidates = {**peer_calls, **width_calls}
-                    timings = interleaved_median_ms(candidates, warmup=3, repeats=reps, rewarm=not cold,
+                    timings = interleaved_median_ms(candidates, warmup=3, repeats=reps,
+                                                    rewarm=0 if cold else HOT_REWARM_CALLS,
                                                     min_seconds=MIN_SECONDS_PER_CANDIDATE * len(candidates),
                                                     max_repeats=max(reps, MAX_ROUNDS))
             if decode:
@@ -340,7 +347,7 @@ def main() -> None:
                "peers": PEERS + (list(BITSANDBYTES_PEERS) if args.bitsandbytes else []),
                "bitsandbytes": bitsandbytes_version() if args.bitsandbytes else None,
                "timing": "interleaved: each round calls every layer once, in a shuffled order; hot calls each "
-                         "after an untimed one; M = 1 cold one peer after another, dyq's widths in turns, each "
+                         f"after {HOT_REWARM_CALLS} untimed ones; M = 1 cold one peer after another, dyq's widths in turns, each "
                          f"timed call after {DECODE_SAME_WIDTH_CALLS} untimed ones of its width",
                "runs": runs}
     path = write_json(args.out, payload)

@@ -92,12 +92,15 @@ def test_prepare_runs_untimed_before_each_call_and_rewarm_adds_an_untimed_call(c
     medians = results.interleaved_median_ms({"x": (prepare, fn)}, warmup=1, repeats=2, rewarm=True)
     assert log == ["prepare", "fn"] + ["prepare", "fn", "fn"] * 2
     assert medians == pytest.approx({"x": 4.0})
+    log.clear()
+    results.interleaved_median_ms({"x": (prepare, fn)}, warmup=0, repeats=2, rewarm=2)
+    assert log == ["prepare", "fn", "fn", "fn"] * 2
 
 
-@pytest.mark.parametrize("warmup, repeats", [(-1, 3), (0, 0)])
-def test_bad_counts_are_refused(warmup, repeats):
-    with pytest.raises(ValueError, match="warmup must be >= 0 and repeats >= 1"):
-        results.interleaved_median_ms({"x": lambda: None}, warmup=warmup, repeats=repeats)
+@pytest.mark.parametrize("warmup, repeats, rewarm", [(-1, 3, 0), (0, 0, 0), (1, 3, -1)])
+def test_bad_counts_are_refused(warmup, repeats, rewarm):
+    with pytest.raises(ValueError, match="warmup and rewarm must be >= 0 and repeats >= 1"):
+        results.interleaved_median_ms({"x": lambda: None}, warmup=warmup, repeats=repeats, rewarm=rewarm)
 
 
 def test_rounds_go_on_until_the_timed_calls_reach_min_seconds(clock):

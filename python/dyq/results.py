@@ -96,7 +96,7 @@ def balanced_orders(count: int, rng: random.Random) -> list[list[int]]:
     return [[relabel[index] for index in order] for order in rounds]
 
 
-def interleaved_median_ms(candidates: dict, *, warmup: int = 1, repeats: int = 15, rewarm: bool = False,
+def interleaved_median_ms(candidates: dict, *, warmup: int = 1, repeats: int = 15, rewarm: int = 0,
                           min_seconds: float = 0.0, max_repeats: int | None = None, seed: int = 0) -> dict:
     """Median wall milliseconds of each candidate, timed in turns: every round calls each candidate once, so
     that all of them meet the same drifts of a shared machine (on a 2-core VM the same bf16 control step
@@ -113,15 +113,16 @@ def interleaved_median_ms(candidates: dict, *, warmup: int = 1, repeats: int = 1
     (the same kernel; alternating in one loop they tied, 0.93 ms each).
 
     ``candidates`` maps a name to fn, or to (prepare, fn) where prepare() runs untimed before each call
-    of fn (to set a precision, say). With ``rewarm`` every timed call follows an untimed one of the same
-    candidate, which brings back into the caches what the other candidates' calls evicted.
+    of fn (to set a precision, say). With ``rewarm`` (a count; True is 1) every timed call follows that many
+    untimed ones of the same candidate, which bring back into the caches what the other candidates' calls
+    evicted.
 
     Rounds go on past ``repeats`` until the timed calls add up to ``min_seconds``, up to ``max_repeats``
     rounds in all: calls of a tenth of a millisecond then get hundreds of rounds where a fixed count fit
     for a long call leaves their medians to a few rounds' drift."""
     calls = {name: entry if isinstance(entry, tuple) else (None, entry) for name, entry in candidates.items()}
-    if warmup < 0 or repeats < 1:
-        raise ValueError(f"warmup must be >= 0 and repeats >= 1, got {warmup} and {repeats}")
+    if warmup < 0 or repeats < 1 or rewarm < 0:
+        raise ValueError(f"warmup and rewarm must be >= 0 and repeats >= 1, got {warmup}, {rewarm} and {repeats}")
     if min_seconds < 0 or (max_repeats is not None and max_repeats < repeats):
         raise ValueError(f"min_seconds must be >= 0 and max_repeats >= repeats ({repeats}), "
                          f"got {min_seconds} and {max_repeats}")
@@ -145,7 +146,7 @@ def interleaved_median_ms(candidates: dict, *, warmup: int = 1, repeats: int = 1
             prepare, fn = calls[name]
             if prepare is not None:
                 prepare()
-            if rewarm:
+            for _ in range(int(rewarm)):
                 fn()
             t0 = time.perf_counter()
             fn()
