@@ -347,8 +347,8 @@ def main() -> None:
                "peers": PEERS + (list(BITSANDBYTES_PEERS) if args.bitsandbytes else []),
                "bitsandbytes": bitsandbytes_version() if args.bitsandbytes else None,
                "timing": "interleaved: each round calls every layer once, in a shuffled order; hot calls each "
-                         f"after {HOT_REWARM_CALLS} untimed ones; M = 1 cold one peer after another, dyq's widths in turns, each "
-                         f"timed call after {DECODE_SAME_WIDTH_CALLS} untimed ones of its width",
+                         f"after {HOT_REWARM_CALLS} untimed ones; M = 1 cold one peer after another, dyq's widths "
+                         f"in turns, each timed call after {DECODE_SAME_WIDTH_CALLS} untimed ones of its width",
                "runs": runs}
     path = write_json(args.out, payload)
     print(f"\nwrote {path}")
