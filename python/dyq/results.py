@@ -146,7 +146,7 @@ def interleaved_median_ms(candidates: dict, *, warmup: int = 1, repeats: int = 1
             prepare, fn = calls[name]
             if prepare is not None:
                 prepare()
-            for _ in range(int(rewarm)):
+            for _ in range(rewarm):  # True counts as 1
                 fn()
             t0 = time.perf_counter()
             fn()
