@@ -80,7 +80,7 @@ DECODE_SAME_WIDTH_CALLS = 2
 # AMX, whose last-level cache does not keep everything that passes through it: after torch's fp32 layer of
 # 11008 x 4096 had swept its 180 MB, W4A4 at 16 rows took 1.79, 1.62, then 1.27 ms over its next three calls
 # (1.21 in a loop of its own), so that a width's median moved with how often its turn followed that layer,
-# and W4A2 came out up to 1.4x slower than W4A4, the same kernel, in the rows of both 11008-wide shapes.
+# and W4A2 came out up to 1.5x slower than W4A4, the same kernel, in the rows of both 11008-wide shapes.
 HOT_REWARM_CALLS = 2
 
 
