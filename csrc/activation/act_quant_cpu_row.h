@@ -448,8 +448,19 @@ void quantize_activation_rows(const Element* x, int64_t rows, int64_t k, int gro
   if constexpr (std::is_same_v<Element, float>) {
     quantize_values(x, rows, k, group_size, act_bits, codes, codes_pitch, params);
   } else {
-    load_row_fp32(x, rows * k, rows_fp32);
-    quantize_values(rows_fp32, rows, k, group_size, act_bits, codes, codes_pitch, params);
+    // A few rows at a time, so that their fp32 values are still in L1 when quantize_values reads them, twice.
+    // Widened all at once, the AMX tiles' 16 rows of 768 columns (48 KiB) left L1, and `perf` put most of
+    // the widening's time on its stores; a row at a time, 256 rows of a 256 x 768 layer at W4A8 ran about
+    // 1.04x faster (one thread, the two builds alternating).
+    constexpr int64_t kRowsFp32Floats = 4096;  // 16 KiB
+    const int64_t rows_at_once = std::max<int64_t>(1, kRowsFp32Floats / std::max<int64_t>(k, 1));
+    const int64_t groups = group_count(k, group_size);
+    for (int64_t first = 0; first < rows; first += rows_at_once) {
+      const int64_t count = std::min(rows_at_once, rows - first);
+      load_row_fp32(x + first * k, count * k, rows_fp32);
+      quantize_values(rows_fp32, count, k, group_size, act_bits, codes + first * codes_pitch, codes_pitch,
+                      params + first * groups);
+    }
   }
 }
 

@@ -458,15 +458,9 @@ AmxInt8Activations amx_int8_activations(const Element* x, int64_t m, int64_t k, 
     std::vector<ActivationGroupParams> params(kAmxTileRows * a.groups);
     for (int64_t t = tile_begin; t < tile_end; ++t) {
       const int64_t first_row = t * kAmxTileRows, rows = std::min(kAmxTileRows, m - first_row);
-      const float* v = nullptr;
-      if constexpr (std::is_same_v<Element, float>) {
-        v = x + first_row * k;
-      } else {
-        for (int64_t r = 0; r < rows; ++r) load_row_fp32(x + (first_row + r) * k, k, values.data() + r * k);
-        v = values.data();
-      }
       std::fill(codes.begin(), codes.end(), uint8_t{0});  // 0 past k and for the rows past m
-      quantize_values(v, rows, k, group_size, act_bits, codes.data(), padded, params.data());
+      quantize_activation_rows(x + first_row * k, rows, k, group_size, act_bits, values.data(), codes.data(), padded,
+                               params.data());
       const int64_t block = t / 2, lane_offset = t % 2 * kAmxTileRows;
       for (int64_t r = 0; r < rows; ++r) {
         uint8_t* row_codes = codes.data() + r * padded;

@@ -817,7 +817,7 @@ bool gemm_typed(const Element* x, const uint8_t* qweight, const float* scales, c
                 int64_t n, int64_t k, int group_size, Element* out) {
   if constexpr (ActivationTraits<kBits>::kQuantized) {
     if (use_panels(m, kBits)) {
-      return split_panel_rows(m, n, k, IntPanel::kTileRows, [&](int64_t row_begin, int64_t rows) {
+      return split_panel_rows(m, n, k, IntPanel::kTileRows, kPanelRowSplitRatio, [&](int64_t row_begin, int64_t rows) {
         const PanelCodes activations = panel_codes(x + row_begin * k, rows, k, group_size, kBits);
         return run_panels<IntPanel>(
             [&](int64_t r) {
@@ -843,7 +843,7 @@ bool gemm_typed(const Element* x, const uint8_t* qweight, const float* scales, c
   } else {
     const int64_t pitch = group_padded(k, group_size);
     if (use_panels(m, kBits)) {
-      return split_panel_rows(m, n, k, Fp32Panel::kTileRows, [&](int64_t row_begin, int64_t rows) {
+      return split_panel_rows(m, n, k, Fp32Panel::kTileRows, kPanelRowSplitRatio, [&](int64_t row_begin, int64_t rows) {
         std::vector<float> activations(rows * pitch, 0.0f);
         parallel_for(0, rows, 16, [&](int64_t first, int64_t last) {
           for (int64_t r = first; r < last; ++r) {

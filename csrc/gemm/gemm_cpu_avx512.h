@@ -1191,7 +1191,7 @@ bool run_panels(const ActivationTiles& tiles, const uint8_t* qweight, const floa
 template <typename Kind, typename Element>
 bool panel_gemm(const Element* x, const uint8_t* qweight, const float* scales, const Element* bias, int64_t m,
                 int64_t n, int64_t k, int group_size, int act_bits, Element* out) {
-  return split_panel_rows(m, n, k, kPanelTileRows, [&](int64_t row_begin, int64_t rows) {
+  return split_panel_rows(m, n, k, kPanelTileRows, kPanelRowSplitRatio, [&](int64_t row_begin, int64_t rows) {
     const ActivationTiles tiles = activation_tiles<Kind>(x + row_begin * k, rows, k, group_size, act_bits);
     return run_panels<Kind>(tiles, qweight, scales, bias, rows, n, k, group_size, out + row_begin * n);
   });
@@ -1278,8 +1278,10 @@ template <int kBits, typename Element>
 bool amx_int8_gemm_at(const Element* x, const uint8_t* qweight, const float* scales, const Element* bias, int64_t m,
                       int64_t n, int64_t k, int group_size, Element* out) {
   using Kind = std::conditional_t<(kBits <= 4), AmxInt8Centered, AmxInt8>;
-  return amx_int8_gemm<NativeTiles, Kind, AmxInt8Panel<Kind>>(x, qweight, scales, bias, m, n, k, group_size, kBits,
-                                                              out);
+  return split_panel_rows(m, n, k, kAmxTileRows, kAmxRowSplitRatio, [&](int64_t row_begin, int64_t rows) {
+    return amx_int8_gemm<NativeTiles, Kind, AmxInt8Panel<Kind>>(x + row_begin * k, qweight, scales, bias, rows, n, k,
+                                                                group_size, kBits, out + row_begin * n);
+  });
 }
 #endif
 
@@ -1295,7 +1297,10 @@ bool gemm_typed(const Element* x, const uint8_t* qweight, const float* scales, c
   } else {
 #if defined(DYQ_AVX512_HAS_AMX)
     if (m >= amx_min_rows(kBits)) {
-      return amx_bf16_gemm<NativeTiles, AmxBf16Panel>(x, qweight, scales, bias, m, n, k, group_size, out);
+      return split_panel_rows(m, n, k, kAmxTileRows, kAmxRowSplitRatio, [&](int64_t row_begin, int64_t rows) {
+        return amx_bf16_gemm<NativeTiles, AmxBf16Panel>(x + row_begin * k, qweight, scales, bias, rows, n, k,
+                                                        group_size, out + row_begin * n);
+      });
     }
 #endif
 #if defined(DYQ_AVX512_HAS_BF16)

@@ -460,4 +460,43 @@ TEST_P(GemmManyThreadsTest, MatchesNaiveReferenceWithAThreadPerChunk) {
 
 INSTANTIATE_TEST_SUITE_P(AllActBits, GemmManyThreadsTest, ::testing::Values(2, 4, 8, 16));
 
+int one_thread() { return 1; }
+int three_threads() { return 3; }
+
+// Small layers split their activation rows between the threads where large ones split the weight rows
+// (split_panel_rows); on one thread nothing is split. Each row's codes and sums do not depend on the other
+// rows, so every path must give the same outputs bit for bit on one thread and on three (uneven shares of
+// rows included), and both within the reference's bound.
+class GemmThreadSplitTest : public ::testing::TestWithParam<int> {
+ protected:
+  void TearDown() override { dyq::set_thread_count_source(nullptr); }
+};
+
+TEST_P(GemmThreadSplitTest, OutputsDoNotDependOnTheThreadCount) {
+  const int act_bits = GetParam();
+  uint32_t seed = 3000u + act_bits;
+  for (const auto& [m, n, k] : {std::tuple<int64_t, int64_t, int64_t>{32, 256, 256}, {45, 64, 200},
+                                {70, 256, 768}, {100, 300, 256}, {256, 256, 256}}) {
+    const Problem p{m, n, k, 128, act_bits, true, seed++};
+    const Inputs in = make_inputs(p, [](float v) { return static_cast<float>(static_cast<Eigen::bfloat16>(v)); });
+    const auto x = naive::to_element<Eigen::bfloat16>(in.x);
+    const auto bias = naive::to_element<Eigen::bfloat16>(in.bias);
+    const auto ref = naive::gemm(in.x, in.weight, in.bias, m, n, k, p.group_size, act_bits);
+    for (const auto& impl : implementations()) {
+      const std::string what = impl.name + " m " + std::to_string(m) + " n " + std::to_string(n);
+      std::vector<Eigen::bfloat16> outputs[2];
+      for (int threads = 0; threads < 2; ++threads) {
+        dyq::set_thread_count_source(threads == 0 ? one_thread : three_threads);
+        outputs[threads].assign(m * n, static_cast<Eigen::bfloat16>(-12345.0f));
+        impl.run(x.data(), ScalarType::kBFloat16, in.qweight.data(), in.weight.scales.data(), bias.data(), m, n, k,
+                 p.group_size, act_bits, outputs[threads].data());
+        expect_within_bound(outputs[threads], ref, relative_bound(impl, p), what);
+      }
+      ASSERT_EQ(0, std::memcmp(outputs[0].data(), outputs[1].data(), m * n * sizeof(Eigen::bfloat16))) << what;
+    }
+  }
+}
+
+INSTANTIATE_TEST_SUITE_P(AllActBits, GemmThreadSplitTest, ::testing::Values(2, 4, 8, 16));
+
 }  // namespace
