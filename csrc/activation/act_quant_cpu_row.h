@@ -437,23 +437,30 @@ inline void quantize_values(const float* v, int64_t rows, int64_t k, int group_s
   }
 }
 
+// The 16-bit rows that quantize_activation_rows widens to fp32 at once: as many as fit 16 KiB, so that their
+// values are still in L1 when quantize_values reads them, twice. Widened all at once, the AMX tiles' 16 rows
+// of 768 columns (48 KiB) left L1, and `perf` put most of the widening's time on its stores; five rows at a
+// time, 256 rows of a 256 x 768 layer at W4A8 ran about 1.04x faster (one thread, the two builds alternating).
+inline int64_t rows_widened_at_once(int64_t k) {
+  constexpr int64_t kRowsFp32Floats = 4096;
+  return std::max<int64_t>(1, kRowsFp32Floats / std::max<int64_t>(k, 1));
+}
+
+// The floats of `rows_fp32` that quantize_activation_rows uses for `rows` rows of k 16-bit values.
+inline int64_t rows_fp32_floats(int64_t rows, int64_t k) { return std::min(rows, rows_widened_at_once(k)) * k; }
+
 // Quantizes the k values of each of the `rows` rows of `x` (contiguous): codes + r * codes_pitch receives
 // row r's unsigned codes q_x, params + r * ceil(k/group_size) its groups' (s_x, z_x), the last group of a
-// row holding the remainder when group_size does not divide k. `rows_fp32` is scratch of rows * k floats,
-// for 16-bit inputs; fp32 rows are read where they are (copied first, they took a fifth of the AVX-512
-// panel path's quantization of 256 rows of 4096 on the AMD EPYC).
+// row holding the remainder when group_size does not divide k. `rows_fp32` is scratch of
+// rows_fp32_floats(rows, k) floats, for 16-bit inputs; fp32 rows are read where they are (copied first, they
+// took a fifth of the AVX-512 panel path's quantization of 256 rows of 4096 on the AMD EPYC).
 template <typename Element>
 void quantize_activation_rows(const Element* x, int64_t rows, int64_t k, int group_size, int act_bits,
                               float* rows_fp32, uint8_t* codes, int64_t codes_pitch, ActivationGroupParams* params) {
   if constexpr (std::is_same_v<Element, float>) {
     quantize_values(x, rows, k, group_size, act_bits, codes, codes_pitch, params);
   } else {
-    // A few rows at a time, so that their fp32 values are still in L1 when quantize_values reads them, twice.
-    // Widened all at once, the AMX tiles' 16 rows of 768 columns (48 KiB) left L1, and `perf` put most of
-    // the widening's time on its stores; a row at a time, 256 rows of a 256 x 768 layer at W4A8 ran about
-    // 1.04x faster (one thread, the two builds alternating).
-    constexpr int64_t kRowsFp32Floats = 4096;  // 16 KiB
-    const int64_t rows_at_once = std::max<int64_t>(1, kRowsFp32Floats / std::max<int64_t>(k, 1));
+    const int64_t rows_at_once = rows_widened_at_once(k);
     const int64_t groups = group_count(k, group_size);
     for (int64_t first = 0; first < rows; first += rows_at_once) {
       const int64_t count = std::min(rows_at_once, rows - first);

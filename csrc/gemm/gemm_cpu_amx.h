@@ -453,7 +453,7 @@ AmxInt8Activations amx_int8_activations(const Element* x, int64_t m, int64_t k, 
   // B tile by B tile (16 rows): the rows' codes in column order, then each step's bytes in the load order,
   // transposed into the tile's dword rows.
   parallel_for(0, (m + kAmxTileRows - 1) / kAmxTileRows, 1, [&](int64_t tile_begin, int64_t tile_end) {
-    std::vector<float> values(std::is_same_v<Element, float> ? 0 : kAmxTileRows * k);
+    std::vector<float> values(std::is_same_v<Element, float> ? 0 : rows_fp32_floats(kAmxTileRows, k));
     AlignedVector<uint8_t> codes(kAmxTileRows * padded);
     std::vector<ActivationGroupParams> params(kAmxTileRows * a.groups);
     for (int64_t t = tile_begin; t < tile_end; ++t) {

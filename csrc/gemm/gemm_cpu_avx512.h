@@ -789,7 +789,7 @@ struct TileScratch {
   TileScratch(int64_t k, int group_size, bool quantized)
       : codes_pitch(block_padded(k)),
         groups(group_count(k, group_size)),
-        rows(quantized ? kPanelTileRows * k + 64 : sixteen_padded(k) + 64, 0.0f),
+        rows(quantized ? rows_fp32_floats(kPanelTileRows, k) + 64 : sixteen_padded(k) + 64, 0.0f),
         codes(quantized ? kPanelTileRows * codes_pitch : 0, 0),
         params(quantized ? kPanelTileRows * groups : 0) {}
   int64_t codes_pitch, groups;
