@@ -13,6 +13,7 @@
 #include <cmath>
 #include <cstdint>
 #include <cstring>
+#include <limits>
 #include <type_traits>
 
 #include "common/cpu_dtype.h"
@@ -248,32 +249,98 @@ inline __mmask16 group_lanes(int64_t columns, int64_t i) {
   return rest >= 16 ? kAll16 : static_cast<__mmask16>((1u << rest) - 1);
 }
 
-inline GroupRange group_range(const float* v, int64_t columns) {
+// The range of a group as vectors, to be folded 16 groups at once (quantize_values): the lanes' minimum and
+// maximum with 0, and `poison`, the sum of x * 0 over the values, which is 0 unless a value is NaN or
+// infinite (one multiply-add a vector where a compare and a mask OR took three).
+inline void group_range_lanes(const float* v, int64_t columns, __m512& group_min, __m512& group_max, __m512& poison) {
   const __m512 zero = _mm512_setzero_ps();
-  __m512 group_min = zero, group_max = zero;
-  __mmask16 nonfinite = 0;
+  __m512 lo = zero, hi = zero, nonfinite = zero;
   auto take = [&](__m512 values) {
-    nonfinite |= _mm512_cmp_ps_mask(_mm512_sub_ps(values, values), zero, _CMP_NEQ_UQ);  // NaN or Inf
-    group_min = min_ps(group_min, values);
-    group_max = max_ps(group_max, values);
+    nonfinite = _mm512_fmadd_ps(values, zero, nonfinite);
+    lo = min_ps(lo, values);
+    hi = max_ps(hi, values);
   };
-  // Whole vectors without masks, then the rest masked (a mask computed for every vector: 256 rows of a
-  // 256 x 256 W4A8 layer took 112.5 us against 110.9 on the AMD EPYC, one thread).
   int64_t i = 0;
   for (; i + 16 <= columns; i += 16) take(_mm512_loadu_ps(v + i));
   if (i < columns) take(_mm512_maskz_loadu_ps(group_lanes(columns, i), v + i));
-  return {reduce_lanes<MinLanes>(group_min), reduce_lanes<MaxLanes>(group_max), nonfinite != 0};
+  group_min = lo;
+  group_max = hi;
+  poison = nonfinite;
 }
 
-// The codes of 16 values: clamp(rne(x / s_x) + z_x, 0, L), x / s_x through the reciprocal (kByReciprocal)
-// or the division. The quotient is converted to int32 rounding to nearest even, then z_x added and the clamp
-// taken on integers: the codes of rounding in fp32 and converting last, since a group's range sets its s_x,
-// so that |x / s_x| is at most about L, far inside int32. One conversion in place of a round and a
-// conversion, both on one port of Intel's cores: 256 rows of the policy's 256 x 256 and 256 x 768 layers
-// (W4A8, W4A4, W4A2 on the AMX tiles) 1.03x faster, one thread, alternating in one process.
+struct MinVectors {
+  __m512 operator()(__m512 a, __m512 b) const { return min_ps(a, b); }
+};
+struct MaxVectors {
+  __m512 operator()(__m512 a, __m512 b) const { return max_ps(a, b); }
+};
+struct SumVectors {
+  __m512 operator()(__m512 a, __m512 b) const { return _mm512_add_ps(a, b); }
+};
+
+// Lane g of the result: `op` folded over the 16 lanes of v[g]. Four levels, each halving both the vectors and
+// the lanes still to fold (45 shuffles and operations for 16 vectors, where one horizontal fold each took 160).
+template <typename Op>
+__m512 fold_each_lanes(__m512 (&v)[16], Op op) {
+  __m512 halves[8], quarters[4], eighths[2];
+  // Lanes 0..7: v[2p] folded to 8 lanes, 8..15: v[2p + 1].
+  for (int p = 0; p < 8; ++p) {
+    halves[p] = op(_mm512_maskz_shuffle_f32x4(kAll16, v[2 * p], v[2 * p + 1], 0x44),
+                   _mm512_maskz_shuffle_f32x4(kAll16, v[2 * p], v[2 * p + 1], 0xEE));
+  }
+  // 128-bit lane i: v[4p + i] folded to 4 lanes.
+  for (int p = 0; p < 4; ++p) {
+    quarters[p] = op(_mm512_maskz_shuffle_f32x4(kAll16, halves[2 * p], halves[2 * p + 1], 0x88),
+                     _mm512_maskz_shuffle_f32x4(kAll16, halves[2 * p], halves[2 * p + 1], 0xDD));
+  }
+  // 128-bit lane i: v[8p + i] in elements 0 and 1, v[8p + 4 + i] in 2 and 3.
+  for (int p = 0; p < 2; ++p) {
+    eighths[p] = op(_mm512_maskz_shuffle_ps(kAll16, quarters[2 * p], quarters[2 * p + 1], 0x44),
+                    _mm512_maskz_shuffle_ps(kAll16, quarters[2 * p], quarters[2 * p + 1], 0xEE));
+  }
+  // Lane 4 i + e: v[4 e + i]; the permute puts v[g] at lane g.
+  const __m512 folded = op(_mm512_maskz_shuffle_ps(kAll16, eighths[0], eighths[1], 0x88),
+                           _mm512_maskz_shuffle_ps(kAll16, eighths[0], eighths[1], 0xDD));
+  return permutexvar_ps(_mm512_setr_epi32(0, 4, 8, 12, 1, 5, 9, 13, 2, 6, 10, 14, 3, 7, 11, 15), folded);
+}
+
+// activation_group_params (common/format.h) of 16 groups at once, lane by lane the same values: the division
+// and the rounding are the IEEE operations of the scalar expressions, and the special cases (non-finite
+// groups, a range past FLT_MAX, a zero range) are blended in the order the scalar code tests them.
+// Returns s_x and writes z_x and 1 / s_x.
+inline __m512 activation_group_params_lanes(__m512 group_min, __m512 group_max, __m512 poison, int act_bits,
+                                            __m512i& zero_points, __m512& reciprocals) {
+  const __m512 zero = _mm512_setzero_ps();
+  const __m512 levels = _mm512_set1_ps(static_cast<float>((1 << act_bits) - 1));
+  const __m512 lo = min_ps(group_min, zero), hi = max_ps(group_max, zero);
+  __m512 scale = _mm512_div_ps(_mm512_sub_ps(hi, lo), levels);
+  const __mmask16 overflow = _mm512_cmp_ps_mask(scale, _mm512_set1_ps(3.4028235e38f), _CMP_GT_OQ);
+  if (overflow != 0) {
+    const __m512 half = _mm512_set1_ps(0.5f);
+    const __m512 halved = _mm512_div_ps(_mm512_sub_ps(_mm512_mul_ps(half, hi), _mm512_mul_ps(half, lo)), levels);
+    scale = _mm512_mask_mul_ps(scale, overflow, halved, _mm512_set1_ps(2.0f));
+  }
+  const __mmask16 nonfinite = _mm512_cmp_ps_mask(poison, poison, _CMP_UNORD_Q);
+  const __mmask16 no_range = _mm512_cmp_ps_mask(scale, zero, _CMP_EQ_OQ);
+  const __m512 point = _mm512_maskz_roundscale_ps(kAll16, _mm512_div_ps(_mm512_sub_ps(zero, lo), scale),
+                                                  _MM_FROUND_TO_NEAREST_INT | _MM_FROUND_NO_EXC);
+  zero_points = _mm512_maskz_cvttps_epi32(static_cast<__mmask16>(~(nonfinite | no_range)),
+                                          min_ps(max_ps(point, zero), levels));
+  scale = _mm512_mask_blend_ps(no_range, scale, _mm512_set1_ps(1.0f));
+  scale = _mm512_mask_blend_ps(nonfinite, scale, _mm512_set1_ps(std::numeric_limits<float>::quiet_NaN()));
+  reciprocals = _mm512_div_ps(_mm512_set1_ps(1.0f), scale);
+  return scale;
+}
+
+// rne(x / s_x) of 16 values as int32, x / s_x through the reciprocal (kByReciprocal) or the division, and
+// the codes clamp(rne(x / s_x) + z_x, 0, L) (code_lanes). The quotient is converted to int32 rounding to
+// nearest even, then z_x added and the clamp taken on integers: the codes of rounding in fp32 and converting
+// last, since a group's range sets its s_x, so that |x / s_x| is at most about L, far inside int32. One
+// conversion in place of a round and a conversion, both on one port of Intel's cores: 256 rows of the
+// policy's 256 x 256 and 256 x 768 layers (W4A8, W4A4, W4A2 on the AMX tiles) 1.03x faster, one thread,
+// alternating in one process.
 template <bool kByReciprocal>
-[[gnu::always_inline]] inline __m512i code_lanes(__m512 values, __m512 scale, __m512 reciprocal, __m512i zero_point,
-                                                 __m512i levels) {
+[[gnu::always_inline]] inline __m512i quotient_nearest(__m512 values, __m512 scale, __m512 reciprocal) {
   __m512 quotient;
   if constexpr (kByReciprocal) {
     const __m512 estimate = _mm512_mul_ps(values, reciprocal);
@@ -281,16 +348,47 @@ template <bool kByReciprocal>
   } else {
     quotient = _mm512_div_ps(values, scale);
   }
-  return min_epi32(max_epi32(_mm512_add_epi32(cvt_nearest_epi32(quotient), zero_point), _mm512_setzero_si512()), levels);
+  return cvt_nearest_epi32(quotient);
+}
+
+template <bool kByReciprocal>
+[[gnu::always_inline]] inline __m512i code_lanes(__m512 values, __m512 scale, __m512 reciprocal, __m512i zero_point,
+                                                 __m512i levels) {
+  return min_epi32(max_epi32(_mm512_add_epi32(quotient_nearest<kByReciprocal>(values, scale, reciprocal), zero_point),
+                             _mm512_setzero_si512()),
+                   levels);
 }
 
 // The group's constants are passed by value, so that they stay in registers: captured by reference in a
 // lambda, they were loaded again after every byte store (which may alias anything), and W4A8 calls of 256
 // rows of the policy's layers took 1.05x to 1.17x as long (one thread, alternating in one process).
+// 64 values at a time, rne(x / s_x) + z_x of four vectors go to bytes through two saturating packs, to int16
+// and then to u8, which clamp to [0, 255] on the way, then a dword permute that undoes the packs' order within
+// 128-bit lanes, and a byte minimum with L below 8 bits: six instructions where a clamp and a narrowing store
+// of each vector took sixteen.
 template <bool kByReciprocal>
 void store_group_codes(const float* v, int64_t columns, __m512 scale, __m512 reciprocal, __m512i zero_point,
-                       __m512i levels, uint8_t* codes) {
+                       int max_code, uint8_t* codes) {
+  const __m512i levels = _mm512_set1_epi32(max_code);
   int64_t i = 0;
+  if (columns >= 64) {
+    // Dword 4 L + c of the packed bytes holds codes 4 L..4 L + 3 of vector c; they belong at dword 4 c + L.
+    const __m512i pack_order = _mm512_setr_epi32(0, 4, 8, 12, 1, 5, 9, 13, 2, 6, 10, 14, 3, 7, 11, 15);
+    const __m512i level_bytes = _mm512_set1_epi8(static_cast<char>(max_code));
+    for (; i + 64 <= columns; i += 64) {
+      __m512i shifted[4];
+      for (int c = 0; c < 4; ++c) {
+        shifted[c] = _mm512_add_epi32(quotient_nearest<kByReciprocal>(_mm512_loadu_ps(v + i + 16 * c), scale, reciprocal),
+                                      zero_point);
+      }
+      const __m512i low_words = _mm512_maskz_packs_epi32(~__mmask32{0}, shifted[0], shifted[1]);
+      const __m512i high_words = _mm512_maskz_packs_epi32(~__mmask32{0}, shifted[2], shifted[3]);
+      __m512i bytes = _mm512_maskz_permutexvar_epi32(
+          kAll16, pack_order, _mm512_maskz_packus_epi16(~__mmask64{0}, low_words, high_words));
+      if (max_code < 255) bytes = _mm512_maskz_min_epu8(~__mmask64{0}, bytes, level_bytes);
+      _mm512_storeu_si512(codes + i, bytes);
+    }
+  }
   for (; i + 16 <= columns; i += 16) {
     // vpmovdb to a register then a plain store: its masked store form is the slower one on Zen 4.
     const __m512i lanes = code_lanes<kByReciprocal>(_mm512_loadu_ps(v + i), scale, reciprocal, zero_point, levels);
@@ -304,20 +402,21 @@ void store_group_codes(const float* v, int64_t columns, __m512 scale, __m512 rec
   }
 }
 
-// codes[0..columns) = q_x; all 0 for a non-finite group (NaN scale), as activation_code gives.
-inline void group_codes(const float* v, int64_t columns, ActivationGroupParams params, int act_bits, uint8_t* codes) {
+// codes[0..columns) = q_x, given s_x, z_x and 1 / s_x (activation_group_params_lanes); all 0 for a non-finite
+// group (NaN scale), as activation_code gives.
+inline void group_codes(const float* v, int64_t columns, ActivationGroupParams params, float reciprocal_scale,
+                        int act_bits, uint8_t* codes) {
   if (params.scale != params.scale) {
     std::memset(codes, 0, columns);
     return;
   }
   const __m512 scale = _mm512_set1_ps(params.scale);
-  const __m512 reciprocal = _mm512_set1_ps(1.0f / params.scale);
+  const __m512 reciprocal = _mm512_set1_ps(reciprocal_scale);
   const __m512i zero_point = _mm512_set1_epi32(static_cast<int>(params.zero));
-  const __m512i levels = _mm512_set1_epi32((1 << act_bits) - 1);
   if (quotient_by_reciprocal(params.scale)) {
-    store_group_codes<true>(v, columns, scale, reciprocal, zero_point, levels, codes);
+    store_group_codes<true>(v, columns, scale, reciprocal, zero_point, (1 << act_bits) - 1, codes);
   } else {
-    store_group_codes<false>(v, columns, scale, reciprocal, zero_point, levels, codes);
+    store_group_codes<false>(v, columns, scale, reciprocal, zero_point, (1 << act_bits) - 1, codes);
   }
 }
 #elif defined(DYQ_CPU_ISA_AVX2)
@@ -400,15 +499,7 @@ inline void group_codes(const float* v, int64_t columns, ActivationGroupParams p
 }
 #endif
 
-// Codes q_x of one group of `columns` fp32 values; returns the group's (s_x, z_x).
-inline ActivationGroupParams quantize_group(const float* v, int64_t columns, int act_bits, uint8_t* codes) {
-  const GroupRange range = group_range(v, columns);
-  const ActivationGroupParams params = activation_group_params(range.min, range.max, act_bits, range.nonfinite);
-  group_codes(v, columns, params, act_bits, codes);
-  return params;
-}
-
-// quantize_group over the groups of `rows` rows of k fp32 values (row r at v + r * k, its codes at
+// The codes and parameters of the groups of `rows` rows of k fp32 values (row r at v + r * k, its codes at
 // codes + r * codes_pitch, its parameters at params + r * groups), a phase over up to 16 groups at a time,
 // across the rows: each group's reduction and scalar parameters form a chain of dependent instructions,
 // which chains of other groups overlap (one group after another, a row of 4096 values took 1.18 us on the
@@ -420,6 +511,37 @@ inline void quantize_values(const float* v, int64_t rows, int64_t k, int group_s
   const int64_t total = rows * groups;
   for (int64_t first = 0; first < total; first += kGroupsAtOnce) {
     const int64_t last = std::min(first + kGroupsAtOnce, total);
+#if defined(DYQ_CPU_ISA_AVX512)
+    // The 16 groups' ranges as vectors, folded together into one vector of each (fold_each_lanes), and their
+    // parameters computed in those vectors' lanes.
+    __m512 group_min[kGroupsAtOnce], group_max[kGroupsAtOnce], poison[kGroupsAtOnce];
+    for (int64_t j = first; j < kGroupsAtOnce + first; ++j) {
+      const int64_t lane = j - first;
+      if (j < last) {
+        const int64_t r = j / groups, g = j % groups;
+        group_range_lanes(v + r * k + g * group_size, group_columns(k, group_size, g), group_min[lane], group_max[lane],
+                          poison[lane]);
+      } else {
+        group_min[lane] = group_max[lane] = poison[lane] = _mm512_setzero_ps();
+      }
+    }
+    __m512i zero_points;
+    __m512 reciprocals;
+    const __m512 scales =
+        activation_group_params_lanes(fold_each_lanes(group_min, MinVectors{}), fold_each_lanes(group_max, MaxVectors{}),
+                                      fold_each_lanes(poison, SumVectors{}), act_bits, zero_points, reciprocals);
+    alignas(64) float lane_scales[kGroupsAtOnce], lane_reciprocals[kGroupsAtOnce];
+    alignas(64) int32_t lane_zeros[kGroupsAtOnce];
+    _mm512_store_ps(lane_scales, scales);
+    _mm512_store_ps(lane_reciprocals, reciprocals);
+    _mm512_store_si512(lane_zeros, zero_points);
+    for (int64_t j = first; j < last; ++j) {
+      const int64_t r = j / groups, g = j % groups;
+      params[j] = {lane_scales[j - first], lane_zeros[j - first]};
+      group_codes(v + r * k + g * group_size, group_columns(k, group_size, g), params[j], lane_reciprocals[j - first],
+                  act_bits, codes + r * codes_pitch + g * group_size);
+    }
+#else
     GroupRange ranges[kGroupsAtOnce];
     for (int64_t j = first; j < last; ++j) {
       const int64_t r = j / groups, g = j % groups;
@@ -434,6 +556,7 @@ inline void quantize_values(const float* v, int64_t rows, int64_t k, int group_s
       group_codes(v + r * k + g * group_size, group_columns(k, group_size, g), params[j], act_bits,
                   codes + r * codes_pitch + g * group_size);
     }
+#endif
   }
 }
 

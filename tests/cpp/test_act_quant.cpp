@@ -141,6 +141,34 @@ TEST(ActQuant, AllZeroGroupGetsScaleOne) {
   for (uint8_t byte : q.packed) EXPECT_EQ(byte, 0);
 }
 
+// The SIMD paths derive the parameters of 16 groups at once, in the lanes of one vector
+// (act_quant_cpu_row.h, activation_group_params_lanes): every special case of activation_group_params side by
+// side in one row of 20 groups (two batches, the second partial), each group's codes and parameters its own.
+TEST(ActQuant, GroupsQuantizedSideBySideKeepTheirOwnSpecialCases) {
+  for (int group_size : {32, 64, 128}) {
+    for (int act_bits : {2, 4, 8}) {
+      constexpr int64_t kGroups = 20;
+      const int64_t k = kGroups * group_size;
+      std::vector<float> values = naive::random_values(k, 40 + act_bits);
+      auto group = [&](int64_t g) { return values.begin() + g * group_size; };
+      std::fill(group(1), group(2), 0.0f);                                          // no range: s_x = 1
+      group(2)[5] = NAN;                                                            // non-finite
+      group(3)[0] = INFINITY;
+      group(4)[group_size - 1] = -INFINITY;
+      for (int i = 0; i < group_size; ++i) group(5)[i] = i % 2 == 0 ? 3.0e38f : -3.0e38f;  // range past FLT_MAX
+      for (int i = 0; i < group_size; ++i) group(6)[i] = std::ldexp(static_cast<float>(i % 7) - 3.0f, -140);
+      for (int i = 0; i < group_size; ++i) group(7)[i] = std::abs(group(7)[i]);     // z_x = 0
+      for (int i = 0; i < group_size; ++i) group(8)[i] = -std::abs(group(8)[i]);    // z_x = L
+      std::fill(group(9), group(10), 0.75f);                                        // one value
+      for (int i = 0; i < group_size; ++i) group(10)[i] = static_cast<float>(i % 16) * 0.5f;  // halfway points
+      group(17)[1] = NAN;                                                           // in the second batch
+      std::fill(group(18), group(19), -0.0f);
+      check_dtype(ScalarType::kFloat32, values, 1, k, group_size, act_bits);
+      check_dtype(ScalarType::kFloat32, values, 2, k / 2, group_size, act_bits);  // 10 groups a row
+    }
+  }
+}
+
 TEST(ActQuant, EmptyBatchWritesNothing) {
   const std::vector<float> x;
   Quantized q{std::vector<uint8_t>(1, 0xAB), std::vector<float>(1, 3.0f), std::vector<uint8_t>(1, 0xAB)};
