@@ -239,12 +239,19 @@ INSTANTIATE_TEST_SUITE_P(AllActBits, GemmEdgeTest, ::testing::Values(2, 4, 8, 16
 // stays NaN): x and the bias hold values exact in every element type, so the fp32 call computes the same
 // sums, and only the final conversion, vectorized in the kernels, differs. Rows of either path, columns
 // past the last whole vector, and a NaN row.
+// With whole_blocks, 64 x 64 outputs (whole 32 x 32 blocks of the AMX loops, which convert a block's bf16
+// outputs at once unless one is a NaN or a denormal): one block holds a NaN row, another a denormal output
+// (row 2's x all 0, so that its outputs are the bias, 2^-130 in column 5).
 template <typename Element>
-void expect_outputs_rounded_from_fp32(int act_bits, int64_t m, ScalarType dtype) {
-  const Problem p{m, 45, 3 * 64, 64, act_bits, true, 31u + static_cast<uint32_t>(m)};
+void expect_outputs_rounded_from_fp32(int act_bits, int64_t m, ScalarType dtype, bool whole_blocks = false) {
+  const Problem p{m, whole_blocks ? 64 : 45, 3 * 64, 64, act_bits, true, 31u + static_cast<uint32_t>(m)};
   // Multiples of 1/64 in [-4, 4): 9 significant bits at most, exact in bf16 and fp16 alike.
   Inputs in = make_inputs(p, [](float v) { return std::round(std::clamp(v, -3.9f, 3.9f) * 64.0f) / 64.0f; });
   in.x[(m - 1) * p.k + 5] = NAN;
+  if (whole_blocks) {
+    std::fill(in.x.begin() + 2 * p.k, in.x.begin() + 3 * p.k, 0.0f);
+    in.bias[5] = 0x1p-130f;  // a denormal, exact in bf16 (fp16 flushes it to 0 in both outputs alike)
+  }
   for (const auto& impl : implementations()) {
     std::vector<float> fp32_out(p.m * p.n);
     impl.run(in.x.data(), ScalarType::kFloat32, in.qweight.data(), in.weight.scales.data(), in.bias.data(), p.m, p.n,
@@ -271,6 +278,8 @@ TEST_P(GemmEdgeTest, HalfPrecisionOutputsAreTheFp32OutputsRounded) {
     expect_outputs_rounded_from_fp32<Eigen::bfloat16>(GetParam(), m, ScalarType::kBFloat16);
     expect_outputs_rounded_from_fp32<Eigen::half>(GetParam(), m, ScalarType::kFloat16);
   }
+  expect_outputs_rounded_from_fp32<Eigen::bfloat16>(GetParam(), 64, ScalarType::kBFloat16, true);
+  expect_outputs_rounded_from_fp32<Eigen::half>(GetParam(), 64, ScalarType::kFloat16, true);
 }
 
 TEST(Gemm, InfinityMakesTheQuantizedRowNaN) {
