@@ -80,6 +80,12 @@ const float* row_as_fp32(const Element* x, int64_t k, float* scratch) {
 // the outputs of a 256-row GEMM of a 256 x 256 layer took a fifth of its time in bf16. store_lanes returns
 // the lanes whose stored value is inf or NaN (its exponent all ones), tested in the register it stores.
 #if defined(DYQ_CPU_ISA_AVX512)
+#if defined(DYQ_AVX512_HAS_BF16)
+// vfpclassps: quiet NaN, denormal, signalling NaN, the values that vcvtneps2bf16 and vcvtne2ps2bf16 read
+// otherwise than from_float (a denormal as 0, a NaN with its payload kept).
+constexpr int kFpclassNanOrDenormal = 0xA1;
+#endif
+
 template <typename Element>
 __mmask16 store_lanes(__m512 v, Element* out) {
   constexpr int kNanOrInf = 0x99;  // vfpclassps: quiet NaN, +inf, -inf, signalling NaN
@@ -92,8 +98,7 @@ __mmask16 store_lanes(__m512 v, Element* out) {
     // payload: vectors holding either take the integer rounding below. In one instruction rather than a
     // dozen, W4A8 calls of 256 rows of the policy's 256 x 256 and 768 x 256 layers, bf16 in and out, ran
     // 1.02x to 1.36x faster (one thread, alternating in one process, as the machine's state moved).
-    constexpr int kNanOrDenormal = 0xA1;  // vfpclassps: quiet NaN, denormal, signalling NaN
-    if (_mm512_fpclass_ps_mask(v, kNanOrDenormal) == 0) {
+    if (_mm512_fpclass_ps_mask(v, kFpclassNanOrDenormal) == 0) {
       const __m256i words = reinterpret_cast<__m256i>(_mm512_cvtneps_pbh(v));
       _mm256_storeu_si256(reinterpret_cast<__m256i*>(out), words);
       const __m256i exponent = _mm256_set1_epi16(0x7F80);
@@ -267,16 +272,6 @@ inline void group_range_lanes(const float* v, int64_t columns, __m512& group_min
   group_max = hi;
   poison = nonfinite;
 }
-
-struct MinVectors {
-  __m512 operator()(__m512 a, __m512 b) const { return min_ps(a, b); }
-};
-struct MaxVectors {
-  __m512 operator()(__m512 a, __m512 b) const { return max_ps(a, b); }
-};
-struct SumVectors {
-  __m512 operator()(__m512 a, __m512 b) const { return _mm512_add_ps(a, b); }
-};
 
 // Lane g of the result: `op` folded over the 16 lanes of v[g]. Four levels, each halving both the vectors and
 // the lanes still to fold (45 shuffles and operations for 16 vectors, where one horizontal fold each took 160).
@@ -528,8 +523,8 @@ inline void quantize_values(const float* v, int64_t rows, int64_t k, int group_s
     __m512i zero_points;
     __m512 reciprocals;
     const __m512 scales =
-        activation_group_params_lanes(fold_each_lanes(group_min, MinVectors{}), fold_each_lanes(group_max, MaxVectors{}),
-                                      fold_each_lanes(poison, SumVectors{}), act_bits, zero_points, reciprocals);
+        activation_group_params_lanes(fold_each_lanes(group_min, MinLanes{}), fold_each_lanes(group_max, MaxLanes{}),
+                                      fold_each_lanes(poison, AddLanes{}), act_bits, zero_points, reciprocals);
     alignas(64) float lane_scales[kGroupsAtOnce], lane_reciprocals[kGroupsAtOnce];
     alignas(64) int32_t lane_zeros[kGroupsAtOnce];
     _mm512_store_ps(lane_scales, scales);

@@ -9,18 +9,29 @@
 DYQ_ISA_BEGIN
 namespace dyq::cpu::DYQ_ISA_NAMESPACE {
 
-// The elementwise operations that reduce_lanes folds with, on 4 and on 8 fp32 lanes.
+// The elementwise operations that reduce_lanes folds with, on 4 and on 8 fp32 lanes, and on 16 where the path
+// has AVX-512 (the quantizer's fold of 16 groups at once, act_quant_cpu_row.h; the zero-masking forms for
+// the reason given at kAll16 below).
 struct AddLanes {
   __m128 operator()(__m128 a, __m128 b) const { return _mm_add_ps(a, b); }
   __m256 operator()(__m256 a, __m256 b) const { return _mm256_add_ps(a, b); }
+#if defined(DYQ_CPU_ISA_AVX512)
+  __m512 operator()(__m512 a, __m512 b) const { return _mm512_add_ps(a, b); }
+#endif
 };
 struct MinLanes {
   __m128 operator()(__m128 a, __m128 b) const { return _mm_min_ps(a, b); }
   __m256 operator()(__m256 a, __m256 b) const { return _mm256_min_ps(a, b); }
+#if defined(DYQ_CPU_ISA_AVX512)
+  __m512 operator()(__m512 a, __m512 b) const { return _mm512_maskz_min_ps(__mmask16{0xFFFF}, a, b); }
+#endif
 };
 struct MaxLanes {
   __m128 operator()(__m128 a, __m128 b) const { return _mm_max_ps(a, b); }
   __m256 operator()(__m256 a, __m256 b) const { return _mm256_max_ps(a, b); }
+#if defined(DYQ_CPU_ISA_AVX512)
+  __m512 operator()(__m512 a, __m512 b) const { return _mm512_maskz_max_ps(__mmask16{0xFFFF}, a, b); }
+#endif
 };
 
 // Op folded over the 8 lanes of v (AddLanes: their sum).

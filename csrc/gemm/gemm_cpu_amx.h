@@ -257,7 +257,6 @@ inline void transpose_block_totals(const float* totals, bool second_half, float*
 // `finite`: whether every output is finite (a total past bf16's largest value rounds to inf).
 inline bool write_block_bf16_words(const float* block_totals, const Eigen::bfloat16* bias, int64_t n,
                                    int64_t row_begin, int64_t weight_row, Eigen::bfloat16* out, bool& finite) {
-  constexpr int kNanOrDenormal = 0xA1;  // vfpclassps: quiet NaN, denormal, signalling NaN
   constexpr __mmask32 kAll32 = ~__mmask32{0};
   __m512i words[kAmxPanelColumns];  // [output row j]: activation rows 0..31
   __mmask16 unusual = 0;
@@ -269,7 +268,7 @@ inline bool write_block_bf16_words(const float* block_totals, const Eigen::bfloa
       low = _mm512_add_ps(low, bias_j);
       high = _mm512_add_ps(high, bias_j);
     }
-    unusual |= _mm512_fpclass_ps_mask(low, kNanOrDenormal) | _mm512_fpclass_ps_mask(high, kNanOrDenormal);
+    unusual |= _mm512_fpclass_ps_mask(low, kFpclassNanOrDenormal) | _mm512_fpclass_ps_mask(high, kFpclassNanOrDenormal);
     words[j] = reinterpret_cast<__m512i>(_mm512_cvtne2ps_pbh(high, low));
   }
   if (unusual != 0) return false;
