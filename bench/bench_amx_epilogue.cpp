@@ -15,8 +15,9 @@
 // - + epilogue: and the epilogue, as the loop runs (both after the group's products are issued);
 // - epilogue alone: the epilogue without any tile work, per group;
 // and the rate of independent 512-bit multiply-adds (no tiles): the vector work the epilogue's time follows;
-// and as many multiply-adds as the epilogue's vector operations beside tile products that read no memory,
-// 512-bit and 256-bit, against either alone: how much vector work the CPU runs while the tiles multiply.
+// and as many vector operations as the epilogue's beside tile products that read no memory, against either
+// alone: how much vector work the CPU runs while the tiles multiply, per kind of operation (multiply-adds of
+// 512 and 256 bits, multiplies, conversions, fp32 adds, integer adds).
 // All run in one process, alternating over rounds (the Xeon with AMX measured moved 2x to 3x between states
 // within minutes); the table and the JSON give the median of the rounds.
 #define DYQ_CPU_ISA_AVX512_AMX 1
@@ -137,19 +138,44 @@ __attribute__((noinline)) double fma_per_ns(int64_t iterations) {
   return 12.0 * static_cast<double>(iterations) / ns;
 }
 
-// Multiply-adds beside the tile products, whatever their width: 16 independent chains of 512-bit (Zmm) or
+// Vector operations beside the tile products: 16 independent chains of one operation on 512-bit (Zmm) or
 // 256-bit (Ymm) vectors, per round kOps of them, with kTiles also 8 tile products on operands already in the
 // tiles (the four C tiles twice each, as a group of the loop takes them). ns per round. On the Xeon with AMX
-// measured, the tile products leave one of the two 512-bit ports to the vector work (docs/cpu_performance.md).
+// measured, the tile products leave the multiplier class (multiply-adds, multiplies, conversions) one of its
+// two 512-bit ports, while fp32 adds and integer adds keep both (docs/cpu_performance.md).
 struct Zmm {
   using Vector = __m512;
+  static constexpr const char* kName = "512-bit multiply-add";
   static Vector start(int i) { return _mm512_set1_ps(1.0f + 1e-7f * static_cast<float>(i)); }
   static Vector step(Vector v) { return _mm512_fmadd_ps(v, _mm512_set1_ps(0.9999999f), _mm512_set1_ps(1e-9f)); }
 };
 struct Ymm {
   using Vector = __m256;
+  static constexpr const char* kName = "256-bit multiply-add";
   static Vector start(int i) { return _mm256_set1_ps(1.0f + 1e-7f * static_cast<float>(i)); }
   static Vector step(Vector v) { return _mm256_fmadd_ps(v, _mm256_set1_ps(0.9999999f), _mm256_set1_ps(1e-9f)); }
+};
+// The epilogue's other operation classes, 512-bit: a multiply (by a factor that keeps the values normal), an
+// fp32 add, an int32-to-fp32 conversion (of the bits: the loop only times it) and an integer add.
+struct ZmmMultiply : Zmm {
+  static constexpr const char* kName = "512-bit multiply";
+  static Vector step(Vector v) { return _mm512_mul_ps(v, _mm512_set1_ps(0.9999999f)); }
+};
+struct ZmmAdd : Zmm {
+  static constexpr const char* kName = "512-bit fp32 add";
+  static Vector step(Vector v) { return _mm512_add_ps(v, _mm512_set1_ps(1e-9f)); }
+};
+struct ZmmConvert : Zmm {
+  static constexpr const char* kName = "512-bit int32 -> fp32";
+  static Vector step(Vector v) { return dyq::cpu::avx512_amx::cvtepi32_ps(_mm512_castps_si512(v)); }
+};
+struct ZmmIntegerAdd : Zmm {
+  static constexpr const char* kName = "512-bit int32 add";
+  static Vector step(Vector v) {
+    __m512i sum = _mm512_add_epi32(_mm512_castps_si512(v), _mm512_set1_epi32(1));
+    asm("" : "+v"(sum));  // so that the compiler cannot fold a chain's adds into one
+    return _mm512_castsi512_ps(sum);
+  }
 };
 
 template <typename Width, int kOps, bool kTiles>
@@ -180,18 +206,29 @@ __attribute__((noinline)) double beside_tiles_ns(amx::NativeTiles& tiles, int64_
          static_cast<double>(rounds);
 }
 
-// The tile products alone, the multiply-adds alone and both in one loop, ns per round of 8 products.
+// The tile products alone, the vector operations alone and both in one loop, ns per round of 8 products.
 struct Beside {
+  const char* name;
+  int ops;
   double tiles, vectors, both;
 };
 
-// As many multiply-adds per 8 tile products as the epilogue's vector operations at G = 128: 256 of 16 floats.
+// As many vector operations per 8 tile products as the epilogue's at G = 128: 256 of 16 floats (512 of 8).
 constexpr int kBesideZmmOps = 256, kBesideYmmOps = 512;
+constexpr int kBesideKinds = 6;
 
 struct Medians {
   double products, stores, epilogue, alone, fma;
-  Beside zmm, ymm;
+  std::vector<Beside> beside;
 };
+
+// One round of Op beside the tiles: the products alone, the operations alone, then both.
+template <typename Op, int kOps>
+void time_beside(amx::NativeTiles& tiles, int64_t rounds, std::vector<double> (&times)[3]) {
+  times[0].push_back(beside_tiles_ns<Op, 0, true>(tiles, rounds));
+  times[1].push_back(beside_tiles_ns<Op, kOps, false>(tiles, rounds));
+  times[2].push_back(beside_tiles_ns<Op, kOps, true>(tiles, rounds));
+}
 
 constexpr int kRounds = 15;
 
@@ -200,7 +237,7 @@ Medians time_parts(Operands& o) {
   tiles.configure(kStepBytes);
   constexpr int kPasses = 400;
   std::vector<double> products, stores, epilogue, alone, fma;
-  std::vector<double> beside[2][3];  // [zmm, ymm][tiles, vectors, both]
+  std::vector<double> beside[kBesideKinds][3];  // [operation][tiles, vectors, both]
   constexpr int64_t kBesideRounds = 100000;
   for (int round = 0; round < kRounds; ++round) {
     products.push_back(ns_per_product<Variant::kProducts>(tiles, o, kPasses));
@@ -213,19 +250,23 @@ Medians time_parts(Operands& o) {
     tiles.load<5>(o.panel + kTileBytes, kStepBytes);
     tiles.load<6>(o.b_tiles[0], 64);
     tiles.load<7>(o.b_tiles[0] + kTileBytes, 64);
-    beside[0][0].push_back(beside_tiles_ns<Zmm, 0, true>(tiles, kBesideRounds));
-    beside[0][1].push_back(beside_tiles_ns<Zmm, kBesideZmmOps, false>(tiles, kBesideRounds));
-    beside[0][2].push_back(beside_tiles_ns<Zmm, kBesideZmmOps, true>(tiles, kBesideRounds));
-    beside[1][0].push_back(beside_tiles_ns<Ymm, 0, true>(tiles, kBesideRounds));
-    beside[1][1].push_back(beside_tiles_ns<Ymm, kBesideYmmOps, false>(tiles, kBesideRounds));
-    beside[1][2].push_back(beside_tiles_ns<Ymm, kBesideYmmOps, true>(tiles, kBesideRounds));
+    time_beside<Zmm, kBesideZmmOps>(tiles, kBesideRounds, beside[0]);
+    time_beside<Ymm, kBesideYmmOps>(tiles, kBesideRounds, beside[1]);
+    time_beside<ZmmMultiply, kBesideZmmOps>(tiles, kBesideRounds, beside[2]);
+    time_beside<ZmmConvert, kBesideZmmOps>(tiles, kBesideRounds, beside[3]);
+    time_beside<ZmmAdd, kBesideZmmOps>(tiles, kBesideRounds, beside[4]);
+    time_beside<ZmmIntegerAdd, kBesideZmmOps>(tiles, kBesideRounds, beside[5]);
   }
   tiles.release();
-  auto beside_medians = [&](int width) {
-    return Beside{median(beside[width][0]), median(beside[width][1]), median(beside[width][2])};
-  };
-  return {median(products), median(stores), median(epilogue), median(alone), median(fma), beside_medians(0),
-          beside_medians(1)};
+  const std::pair<const char*, int> kinds[kBesideKinds] = {
+      {Zmm::kName, kBesideZmmOps},        {Ymm::kName, kBesideYmmOps},  {ZmmMultiply::kName, kBesideZmmOps},
+      {ZmmConvert::kName, kBesideZmmOps}, {ZmmAdd::kName, kBesideZmmOps}, {ZmmIntegerAdd::kName, kBesideZmmOps}};
+  std::vector<Beside> beside_medians;
+  for (int i = 0; i < kBesideKinds; ++i) {
+    beside_medians.push_back(
+        {kinds[i].first, kinds[i].second, median(beside[i][0]), median(beside[i][1]), median(beside[i][2])});
+  }
+  return {median(products), median(stores), median(epilogue), median(alone), median(fma), beside_medians};
 }
 
 }  // namespace
@@ -265,12 +306,11 @@ int main(int argc, char** argv) {
               kRounds, "products", products_ns, "+ C tile stores", stores_ns, "+ epilogue (the loop)", epilogue_ns,
               "epilogue alone", alone_ns, alone_ns / kProductsPerGroup, "512-bit multiply-adds", fma_rate,
               kEpilogueVectorOps, kEpilogueVectorOps / fma_rate);
-  std::printf("\nMultiply-adds beside the tile products (operands in the tiles), ns per 8 products and 4096 lanes of "
-              "multiply-adds\n%-10s %10s %10s %10s %12s\n",
-              "width", "tiles", "vectors", "both", "both / sum");
-  const std::pair<const char*, Beside> widths[] = {{"512-bit", r.zmm}, {"256-bit", r.ymm}};
-  for (const auto& [name, b] : widths) {
-    std::printf("%-10s %10.2f %10.2f %10.2f %12.2f\n", name, b.tiles, b.vectors, b.both, b.both / (b.tiles + b.vectors));
+  std::printf("\nVector operations beside the tile products (operands in the tiles), ns per 8 products and 4096 "
+              "lanes of the operation\n%-24s %10s %10s %10s %12s\n",
+              "operation", "tiles", "vectors", "both", "both / sum");
+  for (const Beside& b : r.beside) {
+    std::printf("%-24s %10.2f %10.2f %10.2f %12.2f\n", b.name, b.tiles, b.vectors, b.both, b.both / (b.tiles + b.vectors));
   }
   FILE* json = std::fopen(json_path, "w");
   if (json == nullptr) return 1;
@@ -281,12 +321,14 @@ int main(int argc, char** argv) {
                "\"with_stores_ns_per_product\": %.3f, \"with_epilogue_ns_per_product\": %.3f, "
                "\"epilogue_alone_ns_per_group\": %.3f, \"tile_products_per_group\": %g, "
                "\"epilogue_vector_ops_per_group\": %g, \"fma512_per_ns\": %.3f, "
-               "\"beside_tiles\": {\"products_per_round\": 8, \"lanes_per_round\": 4096, "
-               "\"512-bit\": {\"ops_per_round\": %d, \"tiles_ns\": %.3f, \"vectors_ns\": %.3f, \"both_ns\": %.3f}, "
-               "\"256-bit\": {\"ops_per_round\": %d, \"tiles_ns\": %.3f, \"vectors_ns\": %.3f, \"both_ns\": %.3f}}}\n",
+               "\"beside_tiles\": {\"products_per_round\": 8, \"lanes_per_round\": 4096",
                dyq::bench::cpu_model().c_str(), __VERSION__, kRounds, products_ns, stores_ns, epilogue_ns, alone_ns,
-               kProductsPerGroup, kEpilogueVectorOps, fma_rate, kBesideZmmOps, r.zmm.tiles, r.zmm.vectors, r.zmm.both,
-               kBesideYmmOps, r.ymm.tiles, r.ymm.vectors, r.ymm.both);
+               kProductsPerGroup, kEpilogueVectorOps, fma_rate);
+  for (const Beside& b : r.beside) {
+    std::fprintf(json, ", \"%s\": {\"ops_per_round\": %d, \"tiles_ns\": %.3f, \"vectors_ns\": %.3f, \"both_ns\": %.3f}",
+                 b.name, b.ops, b.tiles, b.vectors, b.both);
+  }
+  std::fprintf(json, "}}\n");
   std::fclose(json);
   return 0;
 }
