@@ -167,7 +167,7 @@ struct ZmmAdd : Zmm {
 };
 struct ZmmConvert : Zmm {
   static constexpr const char* kName = "512-bit int32 -> fp32";
-  static Vector step(Vector v) { return dyq::cpu::avx512_amx::cvtepi32_ps(_mm512_castps_si512(v)); }
+  static Vector step(Vector v) { return amx::cvtepi32_ps(_mm512_castps_si512(v)); }
 };
 struct ZmmIntegerAdd : Zmm {
   static constexpr const char* kName = "512-bit int32 add";
@@ -213,9 +213,15 @@ struct Beside {
   double tiles, vectors, both;
 };
 
+// One kind of operation's rounds: its name and count per round, and the times of each round.
+struct BesideTimes {
+  const char* name = nullptr;
+  int ops = 0;
+  std::vector<double> tiles, vectors, both;
+};
+
 // As many vector operations per 8 tile products as the epilogue's at G = 128: 256 of 16 floats (512 of 8).
 constexpr int kBesideZmmOps = 256, kBesideYmmOps = 512;
-constexpr int kBesideKinds = 6;
 
 struct Medians {
   double products, stores, epilogue, alone, fma;
@@ -224,10 +230,12 @@ struct Medians {
 
 // One round of Op beside the tiles: the products alone, the operations alone, then both.
 template <typename Op, int kOps>
-void time_beside(amx::NativeTiles& tiles, int64_t rounds, std::vector<double> (&times)[3]) {
-  times[0].push_back(beside_tiles_ns<Op, 0, true>(tiles, rounds));
-  times[1].push_back(beside_tiles_ns<Op, kOps, false>(tiles, rounds));
-  times[2].push_back(beside_tiles_ns<Op, kOps, true>(tiles, rounds));
+void time_beside(amx::NativeTiles& tiles, int64_t rounds, BesideTimes& times) {
+  times.name = Op::kName;
+  times.ops = kOps;
+  times.tiles.push_back(beside_tiles_ns<Op, 0, true>(tiles, rounds));
+  times.vectors.push_back(beside_tiles_ns<Op, kOps, false>(tiles, rounds));
+  times.both.push_back(beside_tiles_ns<Op, kOps, true>(tiles, rounds));
 }
 
 constexpr int kRounds = 15;
@@ -237,7 +245,7 @@ Medians time_parts(Operands& o) {
   tiles.configure(kStepBytes);
   constexpr int kPasses = 400;
   std::vector<double> products, stores, epilogue, alone, fma;
-  std::vector<double> beside[kBesideKinds][3];  // [operation][tiles, vectors, both]
+  BesideTimes beside[6];  // one per kind of operation, in the order timed below
   constexpr int64_t kBesideRounds = 100000;
   for (int round = 0; round < kRounds; ++round) {
     products.push_back(ns_per_product<Variant::kProducts>(tiles, o, kPasses));
@@ -258,13 +266,9 @@ Medians time_parts(Operands& o) {
     time_beside<ZmmIntegerAdd, kBesideZmmOps>(tiles, kBesideRounds, beside[5]);
   }
   tiles.release();
-  const std::pair<const char*, int> kinds[kBesideKinds] = {
-      {Zmm::kName, kBesideZmmOps},        {Ymm::kName, kBesideYmmOps},  {ZmmMultiply::kName, kBesideZmmOps},
-      {ZmmConvert::kName, kBesideZmmOps}, {ZmmAdd::kName, kBesideZmmOps}, {ZmmIntegerAdd::kName, kBesideZmmOps}};
   std::vector<Beside> beside_medians;
-  for (int i = 0; i < kBesideKinds; ++i) {
-    beside_medians.push_back(
-        {kinds[i].first, kinds[i].second, median(beside[i][0]), median(beside[i][1]), median(beside[i][2])});
+  for (const BesideTimes& times : beside) {
+    beside_medians.push_back({times.name, times.ops, median(times.tiles), median(times.vectors), median(times.both)});
   }
   return {median(products), median(stores), median(epilogue), median(alone), median(fma), beside_medians};
 }
