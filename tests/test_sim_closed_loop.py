@@ -370,6 +370,9 @@ def test_summarize_only_names_the_figure_after_its_table_and_skips_a_task_withou
     assert second.returncode == 0, second.stderr[-2000:]
     # Rows written to another table must not overwrite the official table's figure, closed_loop_lift.png.
     assert [p.name for p in docs.glob("figures/*.png")] == ["closed_loop_perturbed_lift.png"]
+    # The table names the JSON it was written from (relative to the working directory it lies under).
+    assert "Written by `dyq eval` from `r.json`;" in (docs / "closed_loop_perturbed.md").read_text()
+    assert "from `bench/results/closed_loop.json`" in evaluate.markdown_table({"tasks": {}})
 
 
 @pytest.mark.parametrize("argv, message", [

@@ -341,9 +341,20 @@ def update_results(out: Path, task: str, seeds: list[int], checkpoint: str, dige
     return data
 
 
-def markdown_table(data: dict[str, Any]) -> str:
+def _shown_path(path: Path) -> Path:
+    """path relative to the working directory where it lies under it (as the repository's tables name their
+    JSON), else as it is."""
+    try:
+        return path.resolve().relative_to(Path.cwd().resolve())
+    except ValueError:
+        return path
+
+
+def markdown_table(data: dict[str, Any], source: str | os.PathLike = DEFAULT_OUT) -> str:
+    """The results as the Markdown table that ``dyq eval --table`` writes; ``source`` names the JSON it came
+    from (``--out``: the perturbed states' rows have a file of their own)."""
     lines = ["# Closed-loop results", "",
-             "Written by `dyq eval` from `bench/results/closed_loop.json`; do not edit by hand. Success with its",
+             f"Written by `dyq eval` from `{Path(source).as_posix()}`; do not edit by hand. Success with its",
              "Wilson 95 % interval; bits are the decode's activation width per control step (16 = unquantized);",
              "latency is the policy's prefill + decode per control step on the CPU (median).", ""]
     for task, entry in data["tasks"].items():
@@ -516,7 +527,7 @@ def main(args: argparse.Namespace) -> int:
                 rows[config] = summarize(episodes)
         data = update_results(args.out, task, seeds, checkpoints[task], digests[task], rows)
     args.table.parent.mkdir(parents=True, exist_ok=True)
-    args.table.write_text(markdown_table(data))
+    args.table.write_text(markdown_table(data, _shown_path(results_io.results_path(args.out))))
     try:
         from .plots import plot_success_vs_bits
 
@@ -527,7 +538,7 @@ def main(args: argparse.Namespace) -> int:
             print(f"wrote {plot_success_vs_bits(data['tasks'][task], task, figure)}")
     except RuntimeError as err:  # no matplotlib: the table is still complete
         print(f"no figure: {err}")
-    print(markdown_table(data))
+    print(markdown_table(data, _shown_path(results_io.results_path(args.out))))
     print(f"wrote {results_io.results_path(args.out)} and {args.table}")
     if args.video is not None:
         from .rollout import PolicyRunner
